@@ -1,0 +1,36 @@
+# ofjax: `make demo` runs the whole pipeline on the embedded synthetic scene, `make test` runs the tests.
+# Both create the local virtual environment first (.venv), so each works alone on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: install test test-fast demo reproduce bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/syslibs.sh
+	bash scripts/syslibs.sh
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -c "import open3d, pycolmap, jax; print('ofjax: environment ready (jax', jax.__version__, jax.default_backend() + ')')"
+	touch $(STAMP)
+
+test: install
+	$(PY) -m pytest -q -n 2 --dist loadgroup tests
+
+test-fast: install
+	$(PY) -m pytest -q -m "not slow" tests
+
+demo: install
+	$(PY) -m ofjax.demo --out runs/demo
+
+reproduce: install
+	$(PY) experiments/ablation.py
+
+bench: install
+	$(PY) benchmarks/train_step.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,142 @@
+"""Configuration: one frozen dataclass per component, paper values as defaults.
+
+Two presets exist: `paper` (the numbers of OpticFusion and its reference code) and `cpu` (the
+default: small enough to train the default synthetic scene on a 2-core laptop CPU in minutes).
+`resolve(preset, **overrides)` returns a `Config`; `Config.to_dict()` is what a run writes to
+`config.json`, and `Config.from_dict` reads it back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class HashConfig:
+  """Multiresolution hash encoding (instant-ngp; OpticFusion supplementary A)."""
+  n_levels: int = 16  # number of grid levels L
+  n_features: int = 2  # features per level F
+  log2_table_size: int = 19  # entries per level T = 2**log2_table_size
+  base_resolution: int = 16  # resolution of the coarsest level N_min
+  per_level_scale: float = 1.447269  # growth factor b between levels
+  init_scale: float = 1e-4  # table entries start uniform in (-init_scale, init_scale)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+  """SDF MLP, global colour MLP G and residual colour MLP R (DESIGN.md, supplementary A)."""
+  sdf_hidden: int = 64  # width of the SDF MLP's hidden layers
+  sdf_layers: int = 1  # number of hidden layers of the SDF MLP
+  feature_dim: int = 13  # geometry feature f output beside the SDF value
+  color_hidden: int = 64  # width of the colour MLPs' hidden layers
+  color_layers: int = 2  # number of hidden layers of each colour MLP
+  sh_degree: int = 4  # spherical-harmonics degree of the view direction fed to R (16 coefficients)
+  sphere_init_radius: float = 0.5  # geometric init: the SDF starts as a sphere of this radius
+  residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+  """NeuS sampling and compositing."""
+  n_samples: int = 64  # uniform samples per ray
+  n_importance: int = 64  # hierarchically upsampled samples per ray (no gradient)
+  n_importance_steps: int = 4  # rounds of importance upsampling (NeuS uses 4 x 16)
+  init_inv_s: float = 0.3  # log of NeuS's learned inverse std s starts at log(exp(10 * 0.3))
+  cos_anneal_steps: int = 20000  # NeuS cos-anneal ratio goes 0 -> 1 over these steps
+  wli_guided_samples: int = 0  # extra samples per WLI ray placed around the measured depth
+  wli_guided_width: float = 0.02  # half-width (normalised units) of that depth-guided band
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+  """Loss weights (paper Sec. 3.4 and the reference code); each loss is summed as lambda * loss."""
+  lambda_color: float = 1.0  # OM colour MSE
+  lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
+  lambda_wli: float = 1.0  # WLI depth MSE in normalised units (voids masked)
+  lambda_eikonal: float = 0.1  # (|grad sdf| - 1)^2 on all samples
+  lambda_sparsity: float = 0.01  # exp(-scale * |sdf|) of the reference, on uniform samples
+  sparsity_scale: float = 10.0  # sharpness of the sparsity term
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+  """Adam with linear warm-up then exponential decay to `decay_to` x the base rate."""
+  lr: float = 0.01  # base learning rate of the networks and hash tables
+  lr_inv_s: float = 0.001  # learning rate of the NeuS variance parameter
+  b1: float = 0.9
+  b2: float = 0.99
+  eps: float = 1e-15
+  warmup_steps: int = 500  # linear warm-up length
+  decay_to: float = 0.1  # the rate at the last step, as a fraction of `lr`
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """The training loop."""
+  steps: int = 20000  # optimisation steps
+  n_rays: int = 256  # rays per batch (WLI and OM mixed, equal pixel probability)
+  modalities: tuple[str, ...] = ("wli", "om")  # which data supervise: the paper's ablations
+  seed: int = 0  # seeds parameter init and ray sampling (sampling is keyed by step)
+  log_every: int = 100  # host sync + metrics.jsonl line every k steps
+  checkpoint_every: int = 5000  # checkpoint every k steps
+  keep_checkpoints: int = 2  # how many checkpoints to keep
+  mesh_resolution: int = 256  # marching-cubes grid along the longest side of the observed box
+  box_margin: float = 0.05  # margin around the WLI points, fraction of the box, before normalising
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+  hash: HashConfig = HashConfig()
+  model: ModelConfig = ModelConfig()
+  render: RenderConfig = RenderConfig()
+  loss: LossConfig = LossConfig()
+  optim: OptimConfig = OptimConfig()
+  train: TrainConfig = TrainConfig()
+  preset: str = "paper"
+
+  def to_dict(self) -> dict[str, Any]:
+    return dataclasses.asdict(self)
+
+  @staticmethod
+  def from_dict(d: dict[str, Any]) -> "Config":
+    parts = {}
+    for name, cls in (("hash", HashConfig), ("model", ModelConfig), ("render", RenderConfig),
+                      ("loss", LossConfig), ("optim", OptimConfig), ("train", TrainConfig)):
+      sub = dict(d.get(name, {}))
+      for f in dataclasses.fields(cls):
+        if f.name in sub and isinstance(sub[f.name], list):
+          sub[f.name] = tuple(sub[f.name])
+      parts[name] = cls(**sub)
+    return Config(preset=d.get("preset", "custom"), **parts)
+
+  def dumps(self) -> str:
+    return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+
+PRESETS: dict[str, Config] = {
+    "paper": Config(),
+    # The cpu preset keeps the paper's architecture and loss weights, and shrinks what sets the cost
+    # per step: a 2^16-entry table (CPU cache), fewer samples per ray, fewer steps, and a
+    # schedule compressed to that step count.
+    "cpu": Config(
+        hash=HashConfig(log2_table_size=16),
+        render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
+                            cos_anneal_steps=1500, wli_guided_samples=8),
+        optim=OptimConfig(warmup_steps=100),
+        train=TrainConfig(steps=2000, n_rays=512, log_every=50, checkpoint_every=1000,
+                          mesh_resolution=192),
+        preset="cpu",
+    ),
+}
+
+
+def resolve(preset: str = "cpu", **overrides: dict[str, Any]) -> Config:
+  """Returns the preset with `overrides` = {component: {field: value}} applied."""
+  if preset not in PRESETS:
+    raise KeyError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+  cfg = PRESETS[preset]
+  for comp, fields in overrides.items():
+    cfg = dataclasses.replace(cfg, **{comp: dataclasses.replace(getattr(cfg, comp), **fields)})
+  return cfg

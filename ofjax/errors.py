@@ -1,0 +1,36 @@
+"""User-facing errors and the CLI wrapper that turns them into one line and exit code 2.
+
+A `UserError` is a mistake in the user's input (a missing file, a corrupt image, poses that do not
+fit, ...). Its message names the file or option and says what to do. `cli(main)` runs a CLI entry
+point so that a `UserError` prints `ofjax: error: <message>` on stderr and exits with code 2, with
+no traceback; anything else is a bug in ofjax and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable
+
+EXIT_USER_ERROR = 2
+
+
+class UserError(Exception):
+  """A problem with the user's input; the message is one line naming the file and the fix."""
+
+
+def cli(main: Callable[..., int | None]) -> Callable[..., int]:
+  """Wraps a CLI `main(argv)` so that user errors exit with code 2 and one line on stderr."""
+
+  @functools.wraps(main)
+  def wrapped(*args, **kwargs) -> int:
+    try:
+      return int(main(*args, **kwargs) or 0)
+    except UserError as e:
+      print(f"ofjax: error: {e}", file=sys.stderr)
+      return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+      print("ofjax: interrupted", file=sys.stderr)
+      return 130
+
+  return wrapped

@@ -1,0 +1,48 @@
+"""Atomic file writing: every file ofjax writes for the user goes to a temporary name, then is renamed.
+
+An interrupted write therefore leaves either the previous file or the new one, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+  """Yields a temporary path beside `path`; on success it is renamed onto `path`.
+
+  `suffix` defaults to the target's suffix so that writers which pick a format by extension
+  (PIL, trimesh, open3d) still see the right one.
+  """
+  path = Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp",
+                             dir=path.parent)
+  os.close(fd)
+  tmp = Path(tmp)
+  try:
+    yield tmp
+    os.replace(tmp, path)
+  finally:
+    if tmp.exists():
+      tmp.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+  with atomic_path(path) as tmp:
+    tmp.write_text(text)
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+  write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  with atomic_path(path) as tmp:
+    tmp.write_bytes(data)

@@ -1,0 +1,336 @@
+"""The Scene: ofjax's one in-memory form of a sample's data, and its native on-disk bundle.
+
+Names used throughout ofjax:
+  um        micrometres, the unit of every coordinate a user sees.
+  c2w       [4, 4] camera-to-world matrix, OpenCV axes (x right, y down, z forward), in um.
+  WLI scan  an orthographic camera: pixel (row r, col c) has origin
+              c2w[:3, 3] + c2w[:3, :3] @ ((c + 0.5 - W / 2) * sx, (r + 0.5 - H / 2) * sy, 0)
+            and direction c2w[:3, 2]; `depth` is the distance along that direction (um),
+            NaN where the instrument measured nothing (a void).
+  OM photo  a pinhole camera with intrinsics K (pixels); pixel (u, v) has its centre at
+            (u + 0.5, v + 0.5), ray direction c2w[:3, :3] @ K^-1 (u + 0.5, v + 0.5, 1).
+  normalisation  x_norm = (x_um - center) / scale maps the observed region into [-1, 1]^3.
+
+On disk (format "ofjax-scene", version 1), a scene directory holds
+  scene.json            what is in the bundle: units, source, per-scan pixel size and acquisition
+                        prior, per-photo intrinsics (optional), normalisation (optional)
+  wli/<name>.npz        `depth`: [H, W] float32 um along the axis, NaN = void
+  om/<name>.png         RGB photo, 8 or 16 bit
+  poses.json            (optional) camera-to-world of every camera; see `poses_to_json`
+  ground_truth/         (synthetic scenes only) mesh.ply, surface_points.ply, poses.json
+Every file is written atomically; scene.json is written last.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ofjax import fileio
+from ofjax.errors import UserError
+
+FORMAT = "ofjax-scene"
+VERSION = 1
+POSES_FORMAT = "ofjax-poses"
+
+
+@dataclasses.dataclass
+class WLIScan:
+  """One WLI measurement as an orthographic depth map."""
+  name: str  # unique within the scene, e.g. "0000"
+  depth: np.ndarray  # [H, W] float32, um along the viewing axis, NaN = void
+  pixel_size: tuple[float, float]  # (sx, sy): um per pixel along columns and rows
+  c2w: np.ndarray | None = None  # [4, 4] float64 camera-to-world in um, None until associated
+  prior: dict[str, float] | None = None  # acquisition prior, e.g. {"tilt_deg": 30, "azimuth_deg": 90}
+
+  @property
+  def valid(self) -> np.ndarray:
+    """[H, W] bool: where the WLI measured a depth."""
+    return np.isfinite(self.depth)
+
+  @property
+  def shape(self) -> tuple[int, int]:
+    return tuple(self.depth.shape)
+
+
+@dataclasses.dataclass
+class OMImage:
+  """One optical-microscope photo as a pinhole camera."""
+  name: str  # unique within the scene, e.g. "0000"
+  image: np.ndarray  # [H, W, 3] float32 RGB in [0, 1]
+  K: np.ndarray | None = None  # [3, 3] intrinsics in pixels, None until known (EXIF or SfM)
+  c2w: np.ndarray | None = None  # [4, 4] float64 camera-to-world in um, None until associated
+
+  @property
+  def shape(self) -> tuple[int, int]:
+    return tuple(self.image.shape[:2])
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalization:
+  """The similarity x_norm = (x_um - center) / scale into the training box [-1, 1]^3."""
+  center: tuple[float, float, float]  # um
+  scale: float  # um per normalised unit
+
+  def to_norm(self, x: np.ndarray) -> np.ndarray:
+    return (np.asarray(x) - np.asarray(self.center)) / self.scale
+
+  def to_um(self, x: np.ndarray) -> np.ndarray:
+    return np.asarray(x) * self.scale + np.asarray(self.center)
+
+
+@dataclasses.dataclass
+class Scene:
+  """WLI scans + OM photos of one sample, in micrometres."""
+  wli: list[WLIScan]
+  om: list[OMImage]
+  name: str = "scene"
+  units: str = "um"  # "um", or the layout's own unit when no um-per-unit factor was given
+  source: dict[str, Any] = dataclasses.field(default_factory=dict)  # where the data came from
+  normalization: Normalization | None = None
+
+  @property
+  def posed(self) -> bool:
+    return all(s.c2w is not None for s in self.wli) and all(
+        o.c2w is not None and o.K is not None for o in self.om)
+
+  def wli_points(self, stride: int = 1) -> np.ndarray:
+    """[N, 3] float64: every valid WLI depth back-projected into the world (um)."""
+    pts = []
+    for s in self.wli:
+      if s.c2w is None:
+        raise UserError(f"WLI scan {s.name!r} has no pose; run `python -m ofjax.associate` first")
+      pts.append(wli_points(s, stride))
+    return np.concatenate(pts, axis=0) if pts else np.zeros((0, 3))
+
+
+def wli_rays(scan: WLIScan, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+  """Origins and directions of a WLI scan's pixels.
+
+  Returns:
+    origins: [H', W', 3] float64 um.
+    dirs: [H', W', 3] float64, unit.
+  """
+  h, w = scan.shape
+  sx, sy = scan.pixel_size
+  rows, cols = np.meshgrid(np.arange(0, h, stride), np.arange(0, w, stride), indexing="ij")
+  local = np.stack([(cols + 0.5 - w / 2) * sx, (rows + 0.5 - h / 2) * sy, np.zeros_like(cols,
+                                                                                   float)], -1)
+  rot, t = scan.c2w[:3, :3], scan.c2w[:3, 3]
+  origins = local @ rot.T + t
+  dirs = np.broadcast_to(rot[:, 2] / np.linalg.norm(rot[:, 2]), origins.shape)
+  return origins, dirs
+
+
+def wli_points(scan: WLIScan, stride: int = 1) -> np.ndarray:
+  """[N, 3] float64 um: the valid depths of one scan back-projected with its pose."""
+  o, d = wli_rays(scan, stride)
+  depth = scan.depth[::stride, ::stride].astype(np.float64)
+  ok = np.isfinite(depth)
+  return o[ok] + d[ok] * depth[ok][:, None]
+
+
+def om_rays(image: OMImage, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+  """Origins [H', W', 3] and unit directions [H', W', 3] (float64, um) of a photo's pixels."""
+  h, w = image.shape
+  v, u = np.meshgrid(np.arange(0, h, stride), np.arange(0, w, stride), indexing="ij")
+  pix = np.stack([u + 0.5, v + 0.5, np.ones_like(u, float)], -1)
+  cam = pix @ np.linalg.inv(image.K).T
+  d = cam @ image.c2w[:3, :3].T
+  d /= np.linalg.norm(d, axis=-1, keepdims=True)
+  o = np.broadcast_to(image.c2w[:3, 3], d.shape)
+  return o, d
+
+
+def compute_normalization(scene: Scene, margin: float = 0.05) -> Normalization:
+  """The similarity that maps the posed WLI points' bounding box, grown by `margin`, into [-1, 1]^3."""
+  pts = scene.wli_points(stride=4)
+  if len(pts) == 0:
+    raise UserError("the scene has no valid WLI depth: every scan is void; check the WLI files")
+  lo, hi = pts.min(0), pts.max(0)
+  center = (lo + hi) / 2
+  scale = float(np.max(hi - lo) / 2 * (1 + margin))
+  return Normalization(tuple(float(c) for c in center), scale)
+
+
+# ----------------------------------------------------------------------------------------- poses
+
+
+def intrinsics_to_json(cam: WLIScan | OMImage) -> dict[str, Any]:
+  if isinstance(cam, WLIScan):
+    return {"model": "orthographic", "pixel_size": [float(v) for v in cam.pixel_size]}
+  k = cam.K
+  return {"model": "pinhole", "fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]),
+          "cy": float(k[1, 2])}
+
+
+def K_from_json(d: dict[str, Any]) -> np.ndarray:
+  return np.array([[d["fx"], 0, d["cx"]], [0, d["fy"], d["cy"]], [0, 0, 1]], np.float64)
+
+
+def camera_key(modality: str, name: str) -> str:
+  return f"{modality}/{name}"
+
+
+def poses_to_json(scene: Scene) -> dict[str, Any]:
+  """The poses file: for every posed camera its name, modality, size, intrinsics and c2w (um)."""
+  cams = []
+  for modality, items in (("wli", scene.wli), ("om", scene.om)):
+    for cam in items:
+      if cam.c2w is None or (modality == "om" and cam.K is None):
+        continue
+      h, w = cam.shape
+      cams.append({"name": camera_key(modality, cam.name), "modality": modality, "width": w,
+                   "height": h, "intrinsics": intrinsics_to_json(cam),
+                   "c2w": np.asarray(cam.c2w, np.float64).tolist()})
+  return {"format": POSES_FORMAT, "version": VERSION, "units": scene.units, "cameras": cams}
+
+
+def apply_poses(scene: Scene, poses: dict[str, Any], path: str | Path = "poses.json") -> None:
+  """Sets every camera's c2w (and OM intrinsics) from a poses file's contents, validating them."""
+  by_name = {c.get("name"): c for c in poses.get("cameras", [])}
+  for modality, items in (("wli", scene.wli), ("om", scene.om)):
+    for cam in items:
+      entry = by_name.get(camera_key(modality, cam.name))
+      if entry is None:
+        raise UserError(f"{path}: no pose for camera {camera_key(modality, cam.name)!r}; "
+                        "re-run `python -m ofjax.associate` on this scene")
+      c2w = np.asarray(entry.get("c2w"), np.float64)
+      if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+        raise UserError(f"{path}: camera {entry['name']!r} has a c2w that is not a finite 4x4 "
+                        "matrix; fix or regenerate the poses file")
+      if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
+        raise UserError(f"{path}: camera {entry['name']!r} has a singular rotation; fix or "
+                        "regenerate the poses file")
+      cam.c2w = c2w
+      if modality == "om":
+        cam.K = K_from_json(entry["intrinsics"])
+
+
+def load_poses(path: str | Path) -> dict[str, Any]:
+  path = Path(path)
+  if not path.is_file():
+    raise UserError(f"{path}: poses file not found; run `python -m ofjax.associate SCENE_DIR` or "
+                    "pass --poses SCENE_DIR/ground_truth/poses.json")
+  try:
+    d = json.loads(path.read_text())
+  except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    raise UserError(f"{path}: not a valid poses JSON file ({e.msg if hasattr(e, 'msg') else e}); "
+                    "regenerate it with `python -m ofjax.associate`") from None
+  if not isinstance(d, dict) or not isinstance(d.get("cameras"), list):
+    raise UserError(f"{path}: has no 'cameras' list; regenerate it with `python -m ofjax.associate`")
+  return d
+
+
+# ---------------------------------------------------------------------------------------- bundle
+
+
+def _save_png(path: Path, image: np.ndarray, bits: int = 8) -> None:
+  from PIL import Image
+  img = np.clip(image, 0.0, 1.0)
+  if bits == 16:
+    arr = np.round(img * 65535).astype(np.uint16)
+    # PIL writes 16-bit RGB only through its raw mode "RGB;16B"; write big-endian bytes.
+    pil = Image.frombytes("RGB", (arr.shape[1], arr.shape[0]), arr.astype(">u2").tobytes(),
+                          "raw", "RGB;16B")
+  else:
+    pil = Image.fromarray(np.round(img * 255).astype(np.uint8), "RGB")
+  with fileio.atomic_path(path) as tmp:
+    pil.save(tmp, format="PNG")
+
+
+def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -> Path:
+  """Writes `scene` as a native bundle; poses go to poses.json only with `write_poses`."""
+  directory = Path(directory)
+  (directory / "wli").mkdir(parents=True, exist_ok=True)
+  (directory / "om").mkdir(parents=True, exist_ok=True)
+  wli_meta, om_meta = [], []
+  for s in scene.wli:
+    f = f"wli/{s.name}.npz"
+    with fileio.atomic_path(directory / f) as tmp:
+      with open(tmp, "wb") as fh:
+        np.savez_compressed(fh, depth=s.depth.astype(np.float32))
+    wli_meta.append({"name": s.name, "file": f, "shape": list(s.shape),
+                     "pixel_size": [float(v) for v in s.pixel_size], "prior": s.prior})
+  for o in scene.om:
+    f = f"om/{o.name}.png"
+    _save_png(directory / f, o.image)
+    om_meta.append({"name": o.name, "file": f, "shape": list(o.shape),
+                    "intrinsics": None if o.K is None else intrinsics_to_json(o)})
+  if write_poses:
+    fileio.write_json(directory / "poses.json", poses_to_json(scene))
+  norm = scene.normalization
+  meta = {"format": FORMAT, "version": VERSION, "units": scene.units, "name": scene.name,
+          "source": scene.source, "wli": wli_meta, "om": om_meta,
+          "normalization": None if norm is None else dataclasses.asdict(norm)}
+  fileio.write_json(directory / "scene.json", meta)
+  return directory
+
+
+def read_png(path: Path) -> np.ndarray:
+  """[H, W, 3] float32 in [0, 1] from an 8- or 16-bit PNG (EXIF orientation is for io.om)."""
+  from PIL import Image, UnidentifiedImageError
+  try:
+    with Image.open(path) as im:
+      im.load()
+      if im.mode in ("I;16", "I;16B", "I"):
+        arr = np.asarray(im, np.float32) / 65535.0
+        return np.repeat(arr[..., None], 3, -1)
+      if im.mode.startswith("RGB") and im.mode != "RGB":
+        raise ValueError(f"unsupported mode {im.mode}")
+      if im.mode == "RGB" and getattr(im, "bits", 8) == 16:
+        raise ValueError("unsupported 16-bit mode")
+      rgb = np.asarray(im.convert("RGB"), np.float32) / 255.0
+  except (OSError, UnidentifiedImageError, ValueError) as e:
+    raise UserError(f"{path}: cannot read the image ({e}); replace the file or remove it") from None
+  return rgb
+
+
+def load_scene(directory: str | Path, poses: str | Path | None = None) -> Scene:
+  """Reads a native bundle; applies `poses` (default: DIR/poses.json when it exists)."""
+  directory = Path(directory)
+  meta_path = directory / "scene.json"
+  if not meta_path.is_file():
+    raise UserError(f"{meta_path}: not found; is {directory} an ofjax scene (make one with "
+                    "`python -m ofjax.synth`)?")
+  try:
+    meta = json.loads(meta_path.read_text())
+  except (json.JSONDecodeError, UnicodeDecodeError):
+    raise UserError(f"{meta_path}: not valid JSON; regenerate the scene bundle") from None
+  if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+    raise UserError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')!r}"
+                    f" is not {FORMAT!r} version {VERSION}; regenerate the scene bundle")
+  wli = []
+  for m in meta["wli"]:
+    f = directory / m["file"]
+    try:
+      with np.load(f) as z:
+        depth = np.asarray(z["depth"], np.float32)
+    except FileNotFoundError:
+      raise UserError(f"{f}: WLI file listed in scene.json is missing; restore it") from None
+    except Exception as e:  # noqa: BLE001 - numpy raises many kinds on corrupt archives
+      raise UserError(f"{f}: cannot read the WLI depth map ({type(e).__name__}); replace the "
+                      "file") from None
+    if depth.ndim != 2:
+      raise UserError(f"{f}: depth must be a 2-D map, got shape {depth.shape}; replace the file")
+    wli.append(WLIScan(m["name"], depth, tuple(m["pixel_size"]), prior=m.get("prior")))
+  om = []
+  for m in meta["om"]:
+    f = directory / m["file"]
+    if not f.is_file():
+      raise UserError(f"{f}: OM photo listed in scene.json is missing; restore it")
+    intr = m.get("intrinsics")
+    om.append(OMImage(m["name"], read_png(f), None if intr is None else K_from_json(intr)))
+  norm = meta.get("normalization")
+  scene = Scene(wli, om, name=meta.get("name", directory.name), units=meta.get("units", "um"),
+                source=meta.get("source", {}),
+                normalization=None if norm is None else Normalization(tuple(norm["center"]),
+                                                                      float(norm["scale"])))
+  poses_path = Path(poses) if poses is not None else directory / "poses.json"
+  if poses is not None or poses_path.is_file():
+    apply_poses(scene, load_poses(poses_path), poses_path)
+  return scene
