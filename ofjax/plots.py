@@ -1,0 +1,81 @@
+"""PNG pictures of results, shared by the CLIs: height maps, top-view scatter maps, line plots.
+
+Figures are built with matplotlib's object API (`matplotlib.figure.Figure`, rendered by Agg), so
+drawing never opens a window nor changes the caller's pyplot backend. Lengths on the axes are in um.
+Every PNG is written atomically (ofjax.fileio).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ofjax import fileio
+
+DPI = 120
+
+
+def save(fig: Figure, path: str | Path) -> Path:
+  """Writes `fig` as a PNG at `path` (atomically) and returns the path."""
+  path = Path(path)
+  with fileio.atomic_path(path) as tmp:
+    fig.savefig(tmp, format="png", dpi=DPI, bbox_inches="tight")
+  return path
+
+
+def height_map(path: str | Path, z: np.ndarray, extent: tuple[float, float, float, float],
+               title: str, label: str = "height (um)", axis_names: tuple[str, str] = ("x", "y"),
+               cmap: str = "viridis") -> Path:
+  """An image of a height grid.
+
+  Args:
+    z: [ny, nx] heights, row 0 at the low end of the second axis; NaN is drawn blank.
+    extent: (x0, x1, y0, y1) of the grid in um.
+  """
+  fig = Figure(figsize=(6.4, 5.2))
+  ax = fig.add_subplot()
+  im = ax.imshow(z, origin="lower", extent=extent, cmap=cmap, interpolation="nearest")
+  ax.set(title=title, xlabel=f"{axis_names[0]} (um)", ylabel=f"{axis_names[1]} (um)",
+         aspect="equal")
+  fig.colorbar(im, ax=ax, label=label)
+  return save(fig, path)
+
+
+def scatter_map(path: str | Path, xy: np.ndarray, values: np.ndarray, title: str, label: str,
+                vmax: float | None = None, cmap: str = "magma") -> Path:
+  """A top view of points coloured by a value (e.g. an error on the surface).
+
+  Args:
+    xy: [N, 2] point positions in um.
+    values: [N] the value drawn at each point; the colour scale runs from 0 to `vmax`
+      (default: the 99th percentile, so a few outliers do not wash the map out).
+  """
+  values = np.asarray(values, np.float64)
+  if vmax is None:
+    vmax = float(np.percentile(values, 99)) if len(values) else 1.0
+  fig = Figure(figsize=(6.4, 5.2))
+  ax = fig.add_subplot()
+  order = np.argsort(values)  # draw large errors last so they are not hidden under small ones
+  sc = ax.scatter(xy[order, 0], xy[order, 1], c=values[order], s=2, cmap=cmap, vmin=0.0,
+                  vmax=max(vmax, np.finfo(np.float64).tiny), linewidths=0)
+  ax.set(title=title, xlabel="x (um)", ylabel="y (um)", aspect="equal")
+  fig.colorbar(sc, ax=ax, label=label)
+  return save(fig, path)
+
+
+def line_plot(path: str | Path, x: np.ndarray, ys: dict[str, np.ndarray], title: str,
+              xlabel: str, ylabel: str, equal_aspect: bool = False) -> Path:
+  """Curves sharing one x axis; `ys` maps a legend label to [N] values (NaN breaks the line)."""
+  fig = Figure(figsize=(7.0, 3.6))
+  ax = fig.add_subplot()
+  for name, y in ys.items():
+    ax.plot(x, y, label=name, linewidth=1.2)
+  ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
+  if equal_aspect:
+    ax.set_aspect("equal", adjustable="datalim")
+  if len(ys) > 1:
+    ax.legend()
+  ax.grid(True, alpha=0.3)
+  return save(fig, path)
