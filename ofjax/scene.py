@@ -290,8 +290,8 @@ def read_png(path: Path) -> np.ndarray:
   return rgb
 
 
-def load_scene(directory: str | Path, poses: str | Path | None = None) -> Scene:
-  """Reads a native bundle; applies `poses` (default: DIR/poses.json when it exists)."""
+def load_scene(directory: str | Path, poses: str | Path | None | bool = None) -> Scene:
+  """Reads a native bundle; applies `poses` (default: DIR/poses.json when it exists; False: none)."""
   directory = Path(directory)
   meta_path = directory / "scene.json"
   if not meta_path.is_file():
@@ -330,6 +330,8 @@ def load_scene(directory: str | Path, poses: str | Path | None = None) -> Scene:
                 source=meta.get("source", {}),
                 normalization=None if norm is None else Normalization(tuple(norm["center"]),
                                                                       float(norm["scale"])))
+  if poses is False:  # the raw data only (ofjax.associate makes the poses)
+    return scene
   poses_path = Path(poses) if poses is not None else directory / "poses.json"
   if poses is not None or poses_path.is_file():
     apply_poses(scene, load_poses(poses_path), poses_path)
