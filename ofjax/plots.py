@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from mpl_toolkits.axes_grid1 import make_axes_locatable
 
 from ofjax import fileio
 
@@ -23,6 +24,12 @@ def save(fig: Figure, path: str | Path) -> Path:
   with fileio.atomic_path(path) as tmp:
     fig.savefig(tmp, format="png", dpi=DPI, bbox_inches="tight")
   return path
+
+
+def colorbar(fig: Figure, ax, mappable, label: str) -> None:
+  """A colour bar exactly as tall as `ax` (equal-aspect axes are often much flatter than the figure)."""
+  cax = make_axes_locatable(ax).append_axes("right", size="3%", pad=0.1)
+  fig.colorbar(mappable, cax=cax, label=label)
 
 
 def height_map(path: str | Path, z: np.ndarray, extent: tuple[float, float, float, float],
@@ -39,7 +46,7 @@ def height_map(path: str | Path, z: np.ndarray, extent: tuple[float, float, floa
   im = ax.imshow(z, origin="lower", extent=extent, cmap=cmap, interpolation="nearest")
   ax.set(title=title, xlabel=f"{axis_names[0]} (um)", ylabel=f"{axis_names[1]} (um)",
          aspect="equal")
-  fig.colorbar(im, ax=ax, label=label)
+  colorbar(fig, ax, im, label)
   return save(fig, path)
 
 
@@ -61,7 +68,7 @@ def scatter_map(path: str | Path, xy: np.ndarray, values: np.ndarray, title: str
   sc = ax.scatter(xy[order, 0], xy[order, 1], c=values[order], s=2, cmap=cmap, vmin=0.0,
                   vmax=max(vmax, np.finfo(np.float64).tiny), linewidths=0)
   ax.set(title=title, xlabel="x (um)", ylabel="y (um)", aspect="equal")
-  fig.colorbar(sc, ax=ax, label=label)
+  colorbar(fig, ax, sc, label)
   return save(fig, path)
 
 

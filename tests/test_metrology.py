@@ -1,5 +1,7 @@
 """Roughness and profiles against analytic surfaces, a float64 reference and surfalize."""
 
+import json
+
 import numpy as np
 import pytest
 import surfalize
@@ -134,3 +136,34 @@ def test_profile_follows_the_surface():
                              atol=A * (2 * np.pi * h / WAVELENGTH) ** 2 / 8 + 1e-4)
   _, off = metrology.profile(mesh.vertices, mesh.faces, (0.0, 0.0), (0.0, 105.0), n=8)
   assert np.isnan(off[:, 2]).tolist() == [False] * 3 + [True] * 5  # y > 40 um is beyond the mesh
+
+
+def test_measure_cli(tmp_path, capsys):
+  from ofjax import measure
+  path = tmp_path / "wave.ply"
+  sinusoid_mesh().export(path)
+  region = ",".join(str(v) for v in REGION)
+  assert measure.main(["roughness", "--mesh", str(path), f"--region={region}", "--grid", "128",
+                       "--json"]) == 0
+  out = json.loads(capsys.readouterr().out)
+  assert set(metrology.PARAMETERS) <= set(out) and out["n_missing"] == 0
+  assert out["Sq"] == pytest.approx(A / np.sqrt(2), rel=0.02)
+  assert (tmp_path / "wave_roughness.png").stat().st_size > 0
+
+  assert measure.main(["profile", "--mesh", str(path), "--from=-30,0", "--to", "30,0",
+                       "--n", "61"]) == 0
+  rows = np.loadtxt(tmp_path / "wave_profile.csv", delimiter=",", skiprows=1)
+  assert rows.shape == (61, 4)
+  np.testing.assert_allclose(rows[:, 3], cosine(rows[:, 1], rows[:, 2]), atol=0.02)
+  assert (tmp_path / "wave_profile.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("region", ["1,2,3", "5,0,1,10", "a,b,c,d", "1000,1000,2000,2000"])
+def test_measure_cli_bad_region(tmp_path, capsys, region):
+  from ofjax import measure
+  path = tmp_path / "wave.ply"
+  sinusoid_mesh().export(path)
+  assert measure.main(["roughness", "--mesh", str(path), f"--region={region}"]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and "--region" in err
+  assert not (tmp_path / "wave_roughness.png").exists()
