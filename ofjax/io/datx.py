@@ -1,0 +1,136 @@
+"""Zygo Mx .datx height maps through h5py (surfalize does not read .datx).
+
+The structure read (as Zygo Mx writes it):
+  /MetaData                   (optional) table of (Source, Link, Destination) strings; the path
+                              Root -> "Measurement" -> "Surface" names the measured surface.
+  /Data/Surface/<key>         [H, W] heights (float or int); attributes:
+      "No Data"               [1]: values >= it are voids,
+      "Unit"                  [1] bytes: "NanoMeters", "MicroMeters", "MilliMeters", "Meters",
+                              "Angstroms", "Inches", "Mils", "MicroInches", "Fringes" or "Waves",
+      "Wavelength"            [1] metres, "Interferometric Scale Factor" [1], "Obliquity Factor" [1]:
+                              for "Fringes" h = v * scale * obliquity * wavelength, for "Waves"
+                              h = v * wavelength,
+      "X Converter", "Y Converter"
+                              [1] compound (Category, BaseUnit, Parameters): Parameters[1] is the
+                              lateral step in BaseUnit (normally "Meters").
+  /Attributes/<key>           attributes "...Lateral Resolution:Value" ([1], metres unless
+                              "...Lateral Resolution:Unit" says otherwise): the step when the
+                              surface has no X/Y converter.
+Rows are kept in the file's order (row 0 first); heights and steps are returned in um.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ofjax.errors import UserError
+from ofjax.io.wli import HeightMap, check_pixel_size, validate_height
+
+UM_PER_UNIT = {"meters": 1e6, "millimeters": 1e3, "micrometers": 1.0, "microns": 1.0,
+               "nanometers": 1e-3, "angstroms": 1e-4, "inches": 25400.0, "mils": 25.4,
+               "microinches": 0.0254, "feet": 304800.0}
+LATERAL_KEY = "Lateral Resolution:Value"
+
+
+def _text(v) -> str:
+  v = np.asarray(v).reshape(-1)[0] if np.ndim(v) else v
+  return v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
+
+
+def _scalar(v) -> float:
+  return float(np.asarray(v, np.float64).reshape(-1)[0])
+
+
+def _surface_key(f, path: Path) -> str:
+  """The measured surface's key under /Data/Surface: via /MetaData, else the only (first) one."""
+  if "Data" not in f or "Surface" not in f["Data"] or len(f["Data"]["Surface"]) == 0:
+    raise UserError(f"{path}: has no /Data/Surface height data (an intensity-only .datx?); "
+                    "export the measurement with its surface from Mx")
+  keys = list(f["Data"]["Surface"].keys())
+  if "MetaData" in f:
+    try:
+      rows = [tuple(_text(r[k]) for k in ("Source", "Link", "Destination"))
+              for r in f["MetaData"][()]]
+      meas = [d for s, link, d in rows if s == "Root" and link == "Measurement"]
+      surf = [d for s, link, d in rows if meas and s == meas[0] and link == "Surface"]
+      if surf and surf[0].split("/")[-1] in keys:
+        return surf[0].split("/")[-1]
+    except (KeyError, ValueError, TypeError, IndexError):
+      pass  # an unusual MetaData table: fall back to the first surface
+  return keys[0]
+
+
+def _height_scale(attrs, path: Path) -> float:
+  """um per stored height value."""
+  unit = _text(attrs["Unit"]) if "Unit" in attrs else None
+  if unit is None and "Z Converter" in attrs:
+    unit = _text(attrs["Z Converter"][0]["BaseUnit"])
+  if unit is None:
+    raise UserError(f"{path}: the surface has no 'Unit' attribute, so its heights have no unit; "
+                    "re-export it from Mx")
+  key = unit.strip().lower()
+  if key in UM_PER_UNIT:
+    return UM_PER_UNIT[key]
+  if key in ("fringes", "waves"):
+    try:
+      wavelength_um = _scalar(attrs["Wavelength"]) * 1e6
+      factor = 1.0 if key == "waves" else (_scalar(attrs["Interferometric Scale Factor"])
+                                           * _scalar(attrs["Obliquity Factor"]))
+    except KeyError as e:
+      raise UserError(f"{path}: heights are in {unit} but the attribute {e.args[0]!r} is missing; "
+                      "re-export the surface in a length unit") from None
+    return wavelength_um * factor
+  raise UserError(f"{path}: unknown height unit {unit!r}; re-export the surface in nanometres or "
+                  "micrometres")
+
+
+def _lateral_step(f, attrs, path: Path) -> tuple[float, float]:
+  """(sx, sy) um from the surface's X/Y converters, else the file's lateral resolution."""
+  steps = []
+  for axis in ("X Converter", "Y Converter"):
+    if axis in attrs:
+      conv = attrs[axis][0]
+      base = _text(conv["BaseUnit"]).strip().lower()
+      if base in UM_PER_UNIT:
+        steps.append(float(np.asarray(conv["Parameters"], np.float64)[1]) * UM_PER_UNIT[base])
+  if len(steps) == 2:
+    return check_pixel_size(steps, f"{path}: X/Y Converter step")
+  for group in (f["Attributes"].values() if "Attributes" in f else []):
+    for key, val in group.attrs.items():
+      if key.endswith(LATERAL_KEY):
+        unit_key = key[:-len("Value")] + "Unit"
+        unit = _text(group.attrs[unit_key]).lower() if unit_key in group.attrs else "meters"
+        step = _scalar(val) * UM_PER_UNIT.get(unit, np.nan)
+        return check_pixel_size(step, f"{path}: {key}")
+  raise UserError(f"{path}: no lateral resolution (no X/Y Converter, no '{LATERAL_KEY}' "
+                  "attribute); re-export the measurement from Mx")
+
+
+def read_datx(path: str | Path) -> HeightMap:
+  """Heights (um, NaN voids) and lateral step (um) of a Zygo .datx file."""
+  import h5py
+  path = Path(path)
+  try:
+    with h5py.File(path, "r") as f:
+      key = _surface_key(f, path)
+      ds = f["Data"]["Surface"][key]
+      attrs = ds.attrs
+      raw = np.asarray(ds[()], np.float64)
+      no_data = _scalar(attrs["No Data"]) if "No Data" in attrs else np.inf
+      scale = _height_scale(attrs, path)
+      unit = _text(attrs["Unit"]) if "Unit" in attrs else "?"
+      step = _lateral_step(f, attrs, path)
+  except UserError:
+    raise
+  except Exception as e:  # noqa: BLE001 - h5py raises OSError/KeyError/... on damaged files
+    raise UserError(f"{path}: cannot read the .datx file ({type(e).__name__}: {e}); check that "
+                    "it is complete (re-copy or re-export it)") from None
+  if raw.ndim != 2:
+    raise UserError(f"{path}: surface {key!r} has shape {raw.shape}, not a 2-D map; export a "
+                    "single height map")
+  raw[raw >= no_data] = np.nan
+  height = validate_height(path, raw * scale)
+  return HeightMap(height, step, {"file": str(path), "format": "datx", "reader": "h5py",
+                                  "units": unit, "surface": key})
