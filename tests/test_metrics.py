@@ -1,0 +1,149 @@
+"""Chamfer / F-score / normal / albedo metrics on meshes whose true errors are known exactly."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from ofjax import metrics
+
+SIZE = 100.0  # um, side of the test plates
+N = 20_000  # pred samples: enough for means within ~1% (the errors here are exact, not sampled)
+
+
+def plate(z: float, size: float = SIZE, cells: int = 20) -> trimesh.Trimesh:
+  """A flat square plate at height z, subdivided into cells^2 quads, with colours linear in x, y."""
+  g = np.linspace(0.0, size, cells + 1)
+  gx, gy = np.meshgrid(g, g)
+  verts = np.stack([gx, gy, np.full_like(gx, z)], -1).reshape(-1, 3)
+  i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+  a = (i * (cells + 1) + j).ravel()
+  faces = np.concatenate([np.stack([a, a + 1, a + cells + 2], -1),
+                          np.stack([a, a + cells + 2, a + cells + 1], -1)])
+  mesh = trimesh.Trimesh(verts, faces, process=False)
+  mesh.visual.vertex_colors = np.round(albedo(verts) * 255).astype(np.uint8)
+  return mesh
+
+
+def albedo(p: np.ndarray) -> np.ndarray:
+  """Colours linear in x and y, so barycentric interpolation reproduces them exactly."""
+  return np.stack([0.2 + 0.6 * p[:, 0] / SIZE, 0.8 - 0.5 * p[:, 1] / SIZE,
+                   np.full(len(p), 0.4)], -1)
+
+
+def visible_points(rng, n=4000, inset=10.0) -> np.ndarray:
+  """GT points on the plate z = 0, away from its border (the 'visible' part)."""
+  xy = rng.uniform(inset, SIZE - inset, size=(n, 2))
+  return np.concatenate([xy, np.zeros((n, 1))], -1)
+
+
+def test_mesh_against_itself_is_zero():
+  rng = np.random.default_rng(0)
+  mesh = plate(0.0)
+  pts = visible_points(rng)
+  s = metrics.evaluate(mesh, metrics.GroundTruth(mesh, pts, albedo(pts)), n_samples=N).summary
+  assert s["chamfer_um"] < 1e-5 * SIZE  # float32 ray casting
+  assert all(f["fscore"] == 1.0 for f in s["fscore"])
+  assert s["normal_consistency"] == pytest.approx(1.0, abs=1e-6)
+  # Vertex colours are 8-bit: interpolated they differ from the albedo by at most 0.5/255.
+  assert s["albedo_mae"] < 0.5 / 255 and s["albedo_psnr"] > 20 * np.log10(2 * 255)
+
+
+def test_plane_shifted_along_its_normal_by_d():
+  rng = np.random.default_rng(1)
+  gt = metrics.GroundTruth(plate(0.0), visible_points(rng))
+  d = 0.007 * gt.diagonal  # between the two default F-score thresholds (0.5% and 1%)
+  ev = metrics.evaluate(plate(d), gt, n_samples=N)
+  s = ev.summary
+  # Every evaluated pred sample and every GT point is exactly d from the other plate's interior.
+  assert s["accuracy_um"] == pytest.approx(d, rel=1e-4)
+  assert s["completeness_um"] == pytest.approx(d, rel=1e-4)
+  assert s["chamfer_um"] == pytest.approx(d, rel=1e-4)
+  assert s["chamfer_rel"] == pytest.approx(0.007, rel=1e-4)
+  assert [f["fscore"] for f in s["fscore"]] == [0.0, 1.0]
+  # Only pred samples over the GT points' XY box (inset 10 of 100 um per side) are evaluated.
+  assert s["n_pred_evaluated"] / N == pytest.approx(ev_box_share(gt.points), abs=0.02)
+
+
+def ev_box_share(points: np.ndarray) -> float:
+  lo, hi = points.min(0), points.max(0)
+  return float(np.prod(hi[:2] - lo[:2]) / SIZE ** 2)
+
+
+def segment_distance(p, a, b):
+  """|p - nearest point of segment ab|; p: [P, 1, 3], a, b: [F, 3] -> [P, F]."""
+  ab = b - a
+  t = np.clip(np.sum((p - a) * ab, -1) / np.sum(ab * ab, -1), 0.0, 1.0)
+  return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+
+
+def surface_distance(points: np.ndarray, mesh: trimesh.Trimesh, chunk: int = 100) -> np.ndarray:
+  """Float64 brute force: [P] distance of points [P, 3] to the nearest of all the mesh's faces."""
+  tri = mesh.vertices[mesh.faces]
+  a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+  n = np.cross(b - a, c - a)
+  n /= np.linalg.norm(n, axis=-1, keepdims=True)
+  out = []
+  for i in range(0, len(points), chunk):
+    p = points[i:i + chunk, None]
+    h = np.sum((p - a) * n, -1)
+    q = p - h[..., None] * n  # projection onto each face's plane
+    inside = np.ones(h.shape, bool)
+    for u, v in ((a, b), (b, c), (c, a)):
+      inside &= np.sum(np.cross(v - u, q - u) * n, -1) >= 0
+    edges = np.minimum(np.minimum(segment_distance(p, a, b), segment_distance(p, b, c)),
+                       segment_distance(p, c, a))
+    out.append(np.where(inside, np.abs(h), edges).min(1))
+  return np.concatenate(out)
+
+
+def test_distances_match_float64_reference():
+  rng = np.random.default_rng(2)
+  bumpy = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+  bumpy.vertices *= 1 + 0.05 * rng.standard_normal((len(bumpy.vertices), 1))
+  truth = trimesh.creation.icosphere(subdivisions=4, radius=31.0)
+  up = truth.vertices[truth.vertices[:, 2] > 5.0]  # visible cap only
+  gt = metrics.GroundTruth(truth, up)
+  ev = metrics.evaluate(bumpy, gt, n_samples=3000)
+  acc = surface_distance(ev.pred_points, truth)
+  comp = surface_distance(up, bumpy)
+  np.testing.assert_allclose(ev.accuracy, acc, atol=1e-4)
+  np.testing.assert_allclose(ev.completeness, comp, atol=1e-4)
+  samples = metrics.sample_surface(bumpy, 3000)[0]
+  keep = metrics.evaluated_region(samples, up, metrics.CROP_MARGIN * gt.diagonal)
+  np.testing.assert_array_equal(ev.pred_points, samples[keep])
+  assert 0 < keep.sum() < len(samples)  # the closed underside of the sphere is cropped away
+  assert ev.summary["chamfer_um"] == pytest.approx((acc.mean() + comp.mean()) / 2, abs=1e-4)
+
+
+def test_floaters_count_and_the_unseen_underside_does_not():
+  rng = np.random.default_rng(3)
+  gt = metrics.GroundTruth(plate(0.0), visible_points(rng))
+  below = plate(-0.5 * SIZE)  # a closed bottom far under the visible surface: not evaluated
+  floater = plate(20.0, size=20.0)  # a 20 x 20 um sheet 20 um above: counts
+  floater.apply_translation([40.0, 40.0, 0.0])
+  pred = trimesh.util.concatenate([plate(0.0), below, floater])
+  ev = metrics.evaluate(pred, gt, n_samples=5 * N)
+  s = ev.summary
+  assert np.all(ev.pred_points[:, 2] >= 0.0)
+  # The evaluated box is the GT points' XY box; the floater lies inside it. Expected accuracy:
+  # floater area share of the evaluated area x 20 um; ~2000 floater samples -> ~2% noise.
+  box = ev_box_share(gt.points) * SIZE ** 2
+  assert s["accuracy_um"] == pytest.approx(20.0 * 400.0 / (box + 400.0), rel=0.1)
+  assert s["completeness_um"] < 1e-4
+
+
+def test_albedo_error_and_gain_alignment():
+  rng = np.random.default_rng(4)
+  pts = visible_points(rng)
+  truth = albedo(pts)
+  gt = metrics.GroundTruth(plate(0.0), pts, truth)
+  pred = plate(0.0)
+  dark = np.asarray(pred.visual.vertex_colors, np.float64)
+  dark[:, :3] = np.round(albedo(pred.vertices) * 0.8 * 255)
+  pred.visual.vertex_colors = dark.astype(np.uint8)
+  s = metrics.evaluate(pred, gt, n_samples=2000).summary
+  want_mse = np.mean((0.2 * truth) ** 2)  # pred = 0.8 albedo, up to 8-bit rounding
+  assert s["albedo_psnr"] == pytest.approx(-10 * np.log10(want_mse), abs=0.1)
+  assert s["albedo_mae"] == pytest.approx(np.mean(0.2 * truth), abs=1e-3)
+  assert s["albedo_gain"] == pytest.approx([1.25] * 3, abs=0.01)
+  assert s["albedo_psnr_gain"] > 45.0  # only the 8-bit rounding (<= 0.5/255) is left
