@@ -2,7 +2,8 @@
 
 The structure read (as Zygo Mx writes it):
   /MetaData                   (optional) table of (Source, Link, Destination) strings; the path
-                              Root -> "Measurement" -> "Surface" names the measured surface.
+                              Root -> "Measurement" -> "Surface" names the measured surface
+                              (without it: the first surface that has a "Unit").
   /Data/Surface/<key>         [H, W] heights (float or int); attributes:
       "No Data"               [1]: values >= it are voids,
       "Unit"                  [1] bytes: "NanoMeters", "MicroMeters", "MilliMeters", "Meters",
@@ -58,8 +59,9 @@ def _surface_key(f, path: Path) -> str:
       if surf and surf[0].split("/")[-1] in keys:
         return surf[0].split("/")[-1]
     except (KeyError, ValueError, TypeError, IndexError):
-      pass  # an unusual MetaData table: fall back to the first surface
-  return keys[0]
+      pass  # an unusual MetaData table: fall back to the first surface that has a unit
+  with_unit = [k for k in keys if "Unit" in f["Data"]["Surface"][k].attrs]
+  return (with_unit or keys)[0]
 
 
 def _height_scale(attrs, path: Path) -> float:
@@ -74,14 +76,13 @@ def _height_scale(attrs, path: Path) -> float:
   if key in UM_PER_UNIT:
     return UM_PER_UNIT[key]
   if key in ("fringes", "waves"):
-    try:
-      wavelength_um = _scalar(attrs["Wavelength"]) * 1e6
-      factor = 1.0 if key == "waves" else (_scalar(attrs["Interferometric Scale Factor"])
-                                           * _scalar(attrs["Obliquity Factor"]))
-    except KeyError as e:
-      raise UserError(f"{path}: heights are in {unit} but the attribute {e.args[0]!r} is missing; "
-                      "re-export the surface in a length unit") from None
-    return wavelength_um * factor
+    needed = ["Wavelength"] + ([] if key == "waves" else ["Interferometric Scale Factor",
+                                                          "Obliquity Factor"])
+    missing = [k for k in needed if k not in attrs]
+    if missing:
+      raise UserError(f"{path}: heights are in {unit} but the attribute {missing[0]!r} is missing; "
+                      "re-export the surface in a length unit")
+    return 1e6 * float(np.prod([_scalar(attrs[k]) for k in needed]))
   raise UserError(f"{path}: unknown height unit {unit!r}; re-export the surface in nanometres or "
                   "micrometres")
 

@@ -33,9 +33,8 @@ def _unique_stems(paths: list[Path]) -> None:
 
 
 def list_wli_files(directory: Path) -> list[Path]:
-  exts = set(wli.wli_extensions())
-  return sorted(p for p in directory.iterdir()
-                if p.is_file() and p.suffix.lower() in exts and not p.name.startswith("."))
+  """Every visible file in `directory`: each must be a WLI file (io.wli says which it is not)."""
+  return sorted(p for p in directory.iterdir() if p.is_file() and not p.name.startswith("."))
 
 
 def load_raw(directory: str | Path, pixel_size=None) -> Scene:

@@ -163,8 +163,7 @@ def read_height_map(path: str | Path, pixel_size=None) -> HeightMap:
                     "re-export it from Mx")
   if magic.startswith(NPY_MAGIC) or ext == ".npy":
     return _read_plain(path, "npy", pixel_size)
-  if ext == ".npz" or (magic.startswith(ZIP_MAGIC) and ext not in surfalize_extensions()
-                       and zipfile.is_zipfile(path)):
+  if ext == ".npz" or (magic.startswith(ZIP_MAGIC) and not ext and zipfile.is_zipfile(path)):
     return _read_plain(path, "npz", pixel_size)
   if any(magic.startswith(m) for m in TIFF_MAGICS) or ext in (".tif", ".tiff"):
     return _read_plain(path, "tif", pixel_size)
