@@ -46,3 +46,18 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
   with atomic_path(path) as tmp:
     tmp.write_bytes(data)
+
+
+def write_npz(path: str | os.PathLike, **arrays: Any) -> None:
+  """Like numpy.savez_compressed, but byte-reproducible: zip entries carry a fixed timestamp."""
+  import zipfile
+
+  import numpy as np
+  from numpy.lib import format as npy_format
+  with atomic_path(path) as tmp:
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+      for key, value in arrays.items():
+        info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+        info.compress_type = zipfile.ZIP_DEFLATED
+        with zf.open(info, "w", force_zip64=True) as fh:
+          npy_format.write_array(fh, np.asanyarray(value), allow_pickle=False)

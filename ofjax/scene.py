@@ -251,9 +251,7 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
   wli_meta, om_meta = [], []
   for s in scene.wli:
     f = f"wli/{s.name}.npz"
-    with fileio.atomic_path(directory / f) as tmp:
-      with open(tmp, "wb") as fh:
-        np.savez_compressed(fh, depth=s.depth.astype(np.float32))
+    fileio.write_npz(directory / f, depth=s.depth.astype(np.float32))
     wli_meta.append({"name": s.name, "file": f, "shape": list(s.shape),
                      "pixel_size": [float(v) for v in s.pixel_size], "prior": s.prior})
   for o in scene.om:
