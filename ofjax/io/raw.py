@@ -2,7 +2,8 @@
 
   <dir>/wli/<name>.<ext>   WLI measurements, one per file, any format io.wli reads (.datx, .x3p,
                            .sur, .plu, .opd, .dat, .vk4, .gwy, ... and plain .npy/.npz/.tif height
-                           maps in um, which need `pixel_size`)
+                           maps in um, which need `pixel_size`); every visible file there must be
+                           one (a stray file is a UserError naming it)
   <dir>/om/<name>.<ext>    OM photos (.png .jpg .jpeg .tif .tiff), all of one size
   <dir>/poses.json         (optional) camera poses in ofjax's poses schema (scene.poses_to_json)
 
