@@ -19,7 +19,8 @@ Definitions (all distances are to surfaces, through open3d's RaycastingScene, no
                  share of GT points within tau of the prediction, F = 2 P R / (P + R); tau is a
                  fraction of the diagonal (`thresholds`).
   normal consistency  mean |n_pred . n_gt| over both directions (pred samples vs. the GT face
-                 they are nearest to; GT points vs. the predicted face they are nearest to);
+                 they are nearest to; GT points, with their own normals where given, vs. the
+                 predicted face they are nearest to);
                  orientation-blind, as meshes from different tools wind their faces differently.
   albedo         at every GT point, the predicted colour is the barycentric interpolation of the
                  predicted vertex colours at the nearest predicted surface point; MAE, RMSE and
@@ -48,6 +49,7 @@ class GroundTruth:
   mesh: trimesh.Trimesh  # the true surface, um
   points: np.ndarray  # [N, 3] um, samples of its visible part
   albedo: np.ndarray | None = None  # [N, 3] RGB in [0, 1] at `points`
+  normals: np.ndarray | None = None  # [N, 3] unit surface normals at `points`
 
   @property
   def diagonal(self) -> float:
@@ -131,7 +133,7 @@ def evaluate(pred: trimesh.Trimesh, gt: GroundTruth, thresholds: tuple[float, ..
   samples, sample_normals = samples[keep], sample_normals[keep]
   to_gt = gt_query.closest(samples)
   to_pred = pred_query.closest(gt.points)
-  gt_normals = gt_query.closest(gt.points)["normal"]
+  gt_normals = gt.normals if gt.normals is not None else gt_query.closest(gt.points)["normal"]
   acc, comp = to_gt["distance"], to_pred["distance"]
   accuracy = float(acc.mean()) if len(acc) else float("nan")
   completeness = float(comp.mean())
