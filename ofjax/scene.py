@@ -233,12 +233,12 @@ def _save_png(path: Path, image: np.ndarray, bits: int = 8) -> None:
   from PIL import Image
   img = np.clip(image, 0.0, 1.0)
   if bits == 16:
+    import png  # Pillow cannot write 16-bit RGB: it would keep only the high byte
     arr = np.round(img * 65535).astype(np.uint16)
-    # PIL writes 16-bit RGB only through its raw mode "RGB;16B"; write big-endian bytes.
-    pil = Image.frombytes("RGB", (arr.shape[1], arr.shape[0]), arr.astype(">u2").tobytes(),
-                          "raw", "RGB;16B")
-  else:
-    pil = Image.fromarray(np.round(img * 255).astype(np.uint8), "RGB")
+    with fileio.atomic_path(path) as tmp:
+      png.from_array(arr.reshape(arr.shape[0], -1), "RGB;16").save(str(tmp))
+    return
+  pil = Image.fromarray(np.round(img * 255).astype(np.uint8), "RGB")
   with fileio.atomic_path(path) as tmp:
     pil.save(tmp, format="PNG")
 
@@ -270,22 +270,9 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
 
 
 def read_png(path: Path) -> np.ndarray:
-  """[H, W, 3] float32 in [0, 1] from an 8- or 16-bit PNG (EXIF orientation is for io.om)."""
-  from PIL import Image, UnidentifiedImageError
-  try:
-    with Image.open(path) as im:
-      im.load()
-      if im.mode in ("I;16", "I;16B", "I"):
-        arr = np.asarray(im, np.float32) / 65535.0
-        return np.repeat(arr[..., None], 3, -1)
-      if im.mode.startswith("RGB") and im.mode != "RGB":
-        raise ValueError(f"unsupported mode {im.mode}")
-      if im.mode == "RGB" and getattr(im, "bits", 8) == 16:
-        raise ValueError("unsupported 16-bit mode")
-      rgb = np.asarray(im.convert("RGB"), np.float32) / 255.0
-  except (OSError, UnidentifiedImageError, ValueError) as e:
-    raise UserError(f"{path}: cannot read the image ({e}); replace the file or remove it") from None
-  return rgb
+  """[H, W, 3] float32 in [0, 1] from an 8- or 16-bit photo (ofjax.io.om.read_image)."""
+  from ofjax.io.om import read_image
+  return read_image(path)
 
 
 def load_scene(directory: str | Path, poses: str | Path | None | bool = None) -> Scene:

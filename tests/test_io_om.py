@@ -129,3 +129,11 @@ def test_mismatched_sizes_name_the_odd_photo(tmp_path):
   paths = [tmp_path / "a.png", tmp_path / "b.png"]
   with pytest.raises(UserError, match="b.png: photo is 5x4 but a.png is 6x4"):
     om.check_same_size(paths, [np.zeros((4, 6, 3)), np.zeros((4, 5, 3))])
+
+
+def test_scene_bundle_png_16bit_round_trip(tmp_path):
+  from ofjax import scene
+  a = RNG.random((6, 9, 3)).astype(np.float32)
+  scene._save_png(tmp_path / "b.png", a, bits=16)
+  # Quantisation to 16 bits: at most half a step of 1/65535.
+  np.testing.assert_allclose(scene.read_png(tmp_path / "b.png"), a, rtol=0, atol=0.5 / 65535 + 1e-7)
