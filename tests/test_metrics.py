@@ -1,9 +1,13 @@
 """Chamfer / F-score / normal / albedo metrics on meshes whose true errors are known exactly."""
 
+import json
+
 import numpy as np
+import open3d as o3d
 import pytest
 import trimesh
 
+from ofjax import eval as evaluation
 from ofjax import metrics
 
 SIZE = 100.0  # um, side of the test plates
@@ -103,12 +107,12 @@ def test_distances_match_float64_reference():
   truth = trimesh.creation.icosphere(subdivisions=4, radius=31.0)
   up = truth.vertices[truth.vertices[:, 2] > 5.0]  # visible cap only
   gt = metrics.GroundTruth(truth, up)
-  ev = metrics.evaluate(bumpy, gt, n_samples=3000)
+  ev = metrics.evaluate(bumpy, gt, n_samples=1500)
   acc = surface_distance(ev.pred_points, truth)
   comp = surface_distance(up, bumpy)
   np.testing.assert_allclose(ev.accuracy, acc, atol=1e-4)
   np.testing.assert_allclose(ev.completeness, comp, atol=1e-4)
-  samples = metrics.sample_surface(bumpy, 3000)[0]
+  samples = metrics.sample_surface(bumpy, 1500)[0]
   keep = metrics.evaluated_region(samples, up, metrics.CROP_MARGIN * gt.diagonal)
   np.testing.assert_array_equal(ev.pred_points, samples[keep])
   assert 0 < keep.sum() < len(samples)  # the closed underside of the sphere is cropped away
@@ -147,3 +151,52 @@ def test_albedo_error_and_gain_alignment():
   assert s["albedo_mae"] == pytest.approx(np.mean(0.2 * truth), abs=1e-3)
   assert s["albedo_gain"] == pytest.approx([1.25] * 3, abs=0.01)
   assert s["albedo_psnr_gain"] > 45.0  # only the 8-bit rounding (<= 0.5/255) is left
+
+
+def write_ground_truth(directory, rng, pixel_size=2.0):
+  """A scene directory's ground_truth/ as ofjax.synth lays it out: the plate z = 0."""
+  gt_dir = directory / "ground_truth"
+  gt_dir.mkdir(parents=True)
+  plate(0.0).export(gt_dir / "mesh.ply")
+  pts = visible_points(rng)
+  pc = o3d.t.geometry.PointCloud()
+  pc.point.positions = o3d.core.Tensor(pts.astype(np.float32))
+  pc.point.normals = o3d.core.Tensor(np.tile(np.float32([0, 0, 1]), (len(pts), 1)))
+  pc.point.colors = o3d.core.Tensor(np.round(albedo(pts) * 255).astype(np.uint8))
+  o3d.t.io.write_point_cloud(str(gt_dir / "surface_points.ply"), pc)
+  (gt_dir / "meta.json").write_text(json.dumps({"wli_pixel_size_um": pixel_size}))
+
+
+def test_eval_cli(tmp_path, capsys):
+  write_ground_truth(tmp_path / "scene", np.random.default_rng(5))
+  d = 1.5
+  plate(d).export(tmp_path / "pred.ply")
+  assert evaluation.main(["--pred", str(tmp_path / "pred.ply"), "--gt", str(tmp_path / "scene"),
+                          "--json", "--samples", "5000"]) == 0
+  out = json.loads(capsys.readouterr().out)
+  assert out["chamfer_um"] == pytest.approx(d, rel=1e-4)
+  assert out["chamfer_px"] == pytest.approx(d / 2.0, rel=1e-4)
+  assert out["albedo_psnr"] > 40.0 and out["normal_consistency"] == pytest.approx(1.0, abs=1e-6)
+  for key in ("completeness_png", "accuracy_png"):
+    assert (tmp_path / out[key]).stat().st_size > 0
+  assert json.loads((tmp_path / "pred_eval.json").read_text()) == out
+
+  assert evaluation.main(["--pred", str(tmp_path / "pred.ply"), "--gt", str(tmp_path / "scene"),
+                          "--samples", "2000", "--out", str(tmp_path / "o")]) == 0
+  table = capsys.readouterr().out
+  assert "chamfer" in table and "F-score @0.5%" in table
+  assert (tmp_path / "o" / "pred_completeness.png").is_file()
+
+
+@pytest.mark.parametrize("args", [["--gt", "nowhere"], ["--thresholds", "2"],
+                                  ["--pred", "missing.ply"]])
+def test_eval_cli_user_errors(tmp_path, capsys, args):
+  write_ground_truth(tmp_path / "scene", np.random.default_rng(6))
+  plate(0.0).export(tmp_path / "pred.ply")
+  base = {"--pred": str(tmp_path / "pred.ply"), "--gt": str(tmp_path / "scene")}
+  base.update({args[0]: str(tmp_path / args[1]) if args[0] != "--thresholds" else args[1]})
+  argv = [x for kv in base.items() for x in kv]
+  assert evaluation.main(argv) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith("ofjax: error:")
+  assert not (tmp_path / "pred_eval.json").exists()
