@@ -60,7 +60,8 @@ def contact_sheet(scene: Scene, out: Path) -> None:
   tiles += [(f"OM {o.name}", _thumb(o.image), False) for o in scene.om]
   cols = max(1, min(SHEET_COLS, len(tiles)))
   rows = max(1, int(np.ceil(len(tiles) / cols)))
-  fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.6 * rows), squeeze=False)
+  fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.6 * rows + 0.4), squeeze=False,
+                           layout="constrained")
   cmap = plt.get_cmap("viridis").with_extremes(bad=VOID_RGB)
   for ax in axes.ravel():
     ax.axis("off")
@@ -72,7 +73,6 @@ def contact_sheet(scene: Scene, out: Path) -> None:
       ax.imshow(arr, interpolation="nearest")
     ax.set_title(title, fontsize=8)
   fig.suptitle(f"{scene.name}: WLI depth ({scene.units}, magenta = void) and OM photos", fontsize=9)
-  fig.tight_layout()
   with fileio.atomic_path(out) as tmp:
     fig.savefig(tmp, dpi=100, format="png")
   plt.close(fig)
