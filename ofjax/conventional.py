@@ -1,7 +1,8 @@
 """The conventional baseline (OpticFusion Sec. 3.3.1): screened Poisson on WLI + projected OM colour.
 
 `python -m ofjax.conventional SCENE_DIR --out DIR [--poses FILE] [--depth 9]` writes DIR/mesh.ply
-(um, vertex colours) and DIR/config.json (parameters, counts, timings).
+(um, vertex colours), DIR/mesh.png (top view: colour and height) and DIR/config.json
+(parameters, counts, timings).
 
 Steps (all in um, on a posed Scene):
   1. cloud     every valid WLI depth back-projected (`Scene.wli_points`), merged.
@@ -37,7 +38,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ofjax import fileio
+from ofjax import fileio, plots
 from ofjax import scene as scn
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import MeshQuery
@@ -125,7 +126,7 @@ def project_colours(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
                           & (v < h))
     if len(cand) == 0:
       continue
-    t, _ = query.cast(np.broadcast_to(centre, (len(cand), 3)),
+    t, _, _ = query.cast(np.broadcast_to(centre, (len(cand), 3)),
                       -to_cam[cand] / dist[cand, None])
     cand = cand[t >= dist[cand] - tol]
     # Pixel (col c, row r) has its centre at (c + 0.5, r + 0.5): array index = coordinate - 0.5.
@@ -207,13 +208,16 @@ def main(argv: list[str] | None = None) -> int:
   path = args.out / "mesh.ply"
   with fileio.atomic_path(path) as tmp:
     mesh.export(tmp, file_type="ply")
+  plots.mesh_preview(args.out / "mesh.png", mesh.vertices, mesh.faces,
+                     np.asarray(mesh.visual.vertex_colors[:, :3]) / 255.0,
+                     f"conventional baseline of {args.scene.name} (top view)")
   fileio.write_json(args.out / "config.json", {
       "method": "conventional: screened Poisson (open3d) on the merged WLI cloud + OM colour "
                 "projection", "units": "um", "scene": str(args.scene),
       "poses": str(args.poses or args.scene / "poses.json"), **dataclasses.asdict(cfg), **stats})
   print(f"ofjax.conventional: {stats['vertices']} vertices, {stats['faces']} faces from "
         f"{stats['wli_points']} WLI points ({stats['unseen_vertices']} vertices seen by no photo); "
-        f"{sum(stats['seconds'].values()):.1f} s; wrote {path}")
+        f"{sum(stats['seconds'].values()):.1f} s; wrote {path} and {args.out / 'mesh.png'}")
   return 0
 
 

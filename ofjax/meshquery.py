@@ -46,6 +46,13 @@ def vertex_rgb(mesh: trimesh.Trimesh) -> np.ndarray | None:
   return np.asarray(mesh.visual.vertex_colors, np.float64)[:, :3] / 255.0
 
 
+def barycentric(uv: np.ndarray) -> np.ndarray:
+  """[N, 3] weights from open3d's [N, 2] primitive_uvs, which weight vertices 1 and 2:
+  p = (1 - u - v) v0 + u v1 + v v2."""
+  uv = np.asarray(uv, np.float64)
+  return np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
+
+
 class MeshQuery:
   """Ray casts and closest points on one triangle mesh (um)."""
 
@@ -62,7 +69,8 @@ class MeshQuery:
   def of(cls, mesh: trimesh.Trimesh) -> "MeshQuery":
     return cls(mesh.vertices, mesh.faces)
 
-  def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  def cast(self, origins: np.ndarray, dirs: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """First hits of rays.
 
     Args:
@@ -71,6 +79,7 @@ class MeshQuery:
     Returns:
       t: [N] float64 um to the first hit, inf where the ray misses.
       face: [N] int64 index of the hit face, -1 where the ray misses.
+      bary: [N, 3] barycentric weights of the hit point in that face.
     """
     rays = np.concatenate([np.asarray(origins, np.float64) - self.shift,
                            np.asarray(dirs, np.float64)], -1).astype(np.float32)
@@ -78,7 +87,7 @@ class MeshQuery:
     t = hit["t_hit"].numpy().astype(np.float64)
     face = hit["primitive_ids"].numpy().astype(np.int64)
     face[~np.isfinite(t)] = -1
-    return t, face
+    return t, face, barycentric(hit["primitive_uvs"].numpy())
 
   def closest(self, points: np.ndarray) -> dict[str, np.ndarray]:
     """The nearest surface point of every query point.
@@ -95,11 +104,9 @@ class MeshQuery:
     q = np.asarray(points, np.float64) - self.shift
     r = self.scene.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
     near = r["points"].numpy().astype(np.float64)
-    uv = r["primitive_uvs"].numpy().astype(np.float64)
-    # open3d's (u, v) weight vertices 1 and 2: p = (1 - u - v) v0 + u v1 + v v2.
-    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
     return {"points": near + self.shift, "distance": np.linalg.norm(near - q, axis=-1),
-            "face": r["primitive_ids"].numpy().astype(np.int64), "bary": bary,
+            "face": r["primitive_ids"].numpy().astype(np.int64),
+            "bary": barycentric(r["primitive_uvs"].numpy()),
             "normal": r["primitive_normals"].numpy().astype(np.float64)}
 
   def interpolate(self, values: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:

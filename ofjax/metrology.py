@@ -85,7 +85,7 @@ def cast_down(query: MeshQuery, top: float, xy: np.ndarray) -> np.ndarray:
   """
   origins = np.concatenate([xy, np.full((len(xy), 1), top)], -1)
   dirs = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origins.shape)
-  t, _ = query.cast(origins, dirs)
+  t, _, _ = query.cast(origins, dirs)
   return np.where(np.isfinite(t), top - t, np.nan)
 
 
@@ -139,7 +139,7 @@ def sample_region(vertices: np.ndarray, faces: np.ndarray,
   center = np.array([cx, cy, c])
   points = center + gu[..., None] * axes[0] + gv[..., None] * axes[1]  # [ny, nx, 3] in the plane
   above = float(((vertices - center) @ normal).max()) + RAY_CLEARANCE
-  t, _ = query.cast((points + above * normal).reshape(-1, 3),
+  t, _, _ = query.cast((points + above * normal).reshape(-1, 3),
                     np.broadcast_to(-normal, (points.size // 3, 3)))
   h = np.where(np.isfinite(t), above - t, np.nan).reshape(gu.shape)
   return HeightGrid(level(h, gu, gv), step, center, axes)

@@ -1,4 +1,5 @@
-"""PNG pictures of results, shared by the CLIs: height maps, top-view scatter maps, line plots.
+"""PNG pictures of results, shared by the CLIs: height maps, top-view scatter maps, line plots,
+top-view previews of coloured meshes.
 
 Figures are built with matplotlib's object API (`matplotlib.figure.Figure`, rendered by Agg), so
 drawing never opens a window nor changes the caller's pyplot backend. Lengths on the axes are in um.
@@ -14,6 +15,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.axes_grid1 import make_axes_locatable
 
 from ofjax import fileio
+from ofjax.meshquery import MeshQuery
 
 DPI = 120
 
@@ -86,3 +88,42 @@ def line_plot(path: str | Path, x: np.ndarray, ys: dict[str, np.ndarray], title:
     ax.legend()
   ax.grid(True, alpha=0.3)
   return save(fig, path)
+
+
+def mesh_preview(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
+                 colours: np.ndarray | None, title: str, size: int = 512) -> Path:
+  """A top view of a mesh, rendered orthographically by ray casting: colour beside height.
+
+  Args:
+    vertices: [V, 3] um; faces: [F, 3].
+    colours: [V, 3] RGB in [0, 1] (interpolated across faces), or None for height only.
+    size: pixels along the longer side of the mesh's XY extent.
+  """
+  vertices = np.asarray(vertices, np.float64)
+  lo, hi = vertices.min(0), vertices.max(0)
+  step = max(hi[0] - lo[0], hi[1] - lo[1]) / size
+  xs = lo[0] + (np.arange(max(1, round((hi[0] - lo[0]) / step))) + 0.5) * step
+  ys = lo[1] + (np.arange(max(1, round((hi[1] - lo[1]) / step))) + 0.5) * step
+  gx, gy = np.meshgrid(xs, ys)
+  top = hi[2] + 1.0 + (hi[2] - lo[2])  # start the rays well above the mesh
+  query = MeshQuery(vertices, faces)
+  origins = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, top)], -1)
+  t, face, bary = query.cast(origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape))
+  hit = face >= 0
+  z = np.where(hit, top - t, np.nan).reshape(gx.shape)
+  extent = (lo[0], hi[0], lo[1], hi[1])
+  panels = 1 if colours is None else 2
+  fig = Figure(figsize=(6.0 * panels, 5.2))
+  if colours is not None:
+    rgb = np.ones((gx.size, 3))  # white background where no surface is
+    rgb[hit] = np.clip(query.interpolate(colours, face[hit], bary[hit]), 0.0, 1.0)
+    ax = fig.add_subplot(1, 2, 1)
+    ax.imshow(rgb.reshape(*gx.shape, 3), origin="lower", extent=extent, interpolation="nearest")
+    ax.set(title="colour", xlabel="x (um)", ylabel="y (um)")
+  ax = fig.add_subplot(1, panels, panels)
+  im = ax.imshow(z, origin="lower", extent=extent, cmap="viridis", interpolation="nearest")
+  ax.set(title="height", xlabel="x (um)", ylabel="y (um)")
+  colorbar(fig, ax, im, "z (um)")
+  fig.suptitle(title)
+  return save(fig, path)
+
