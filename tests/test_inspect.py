@@ -30,7 +30,8 @@ def write_raw(root, sizes=((10, 12), (10, 12)), maps=None):
   for i, m in enumerate(maps if maps is not None else [rng.normal(size=(8, 9))] * 2):
     np.save(root / "wli" / f"s{i}.npy", m)
   for i, hw in enumerate(sizes):
-    Image.fromarray(rng.integers(0, 256, hw + (3,), dtype=np.uint8)).save(root / "om" / f"{i:04d}.png")
+    img = rng.integers(0, 256, hw + (3,), dtype=np.uint8)
+    Image.fromarray(img).save(root / "om" / f"{i:04d}.png")
   return root
 
 
@@ -102,7 +103,7 @@ CASES = {
         "--um-per-unit", "1"], "0000.npz: every pixel is a void"),
     "non-finite extrinsic": (lambda t: [_of(t, _nan_extrinsic), "--um-per-unit", "1"],
                              "0000.npz: extrinsic_mat holds non-finite"),
-    "zero factor": (lambda t: [_of(t), "--um-per-unit", "0"], "--um-per-unit: 0.0 is not a positive"),
+    "zero factor": (lambda t: [_of(t), "--um-per-unit", "0"], "--um-per-unit: 0.0 is not"),
     "negative factor": (lambda t: [_of(t), "--um-per-unit", "-2"], "--um-per-unit: -2.0"),
     "nan factor": (lambda t: [_of(t), "--um-per-unit", "nan"], "--um-per-unit: nan"),
     "forced wrong layout": (lambda t: [write_raw(t / "r"), "--layout", "opticfusion"],

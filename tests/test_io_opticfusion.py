@@ -168,7 +168,8 @@ def _truncate(path):
 @pytest.mark.parametrize("breaker, match", [
     (lambda r: (r / "op" / "camera.xml").unlink(), r"camera.xml: not found"),
     (lambda r: (r / "op" / "align.aln").write_text("1\nx\n#\n1 2 3\n"), r"align.aln: lines 4-7"),
-    (lambda r: (r / "op" / "camera.xml").write_text("<document><chunk>"), r"camera.xml: not valid XML"),
+    (lambda r: (r / "op" / "camera.xml").write_text("<document><chunk>"),
+     r"camera.xml: not valid XML"),
     (_break_extrinsic, r"0001.npz: extrinsic_mat holds non-finite"),
     (lambda r: _truncate(r / "wl" / "0000.npz"), r"0000.npz: cannot read the npz"),
     (lambda r: np.savez(r / "wl" / "0000.npz", depth_map=np.full((4, 4), np.nan),

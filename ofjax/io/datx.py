@@ -8,7 +8,8 @@ The structure read (as Zygo Mx writes it):
       "No Data"               [1]: values >= it are voids,
       "Unit"                  [1] bytes: "NanoMeters", "MicroMeters", "MilliMeters", "Meters",
                               "Angstroms", "Inches", "Mils", "MicroInches", "Fringes" or "Waves",
-      "Wavelength"            [1] metres, "Interferometric Scale Factor" [1], "Obliquity Factor" [1]:
+      "Wavelength"            [1] metres, "Interferometric Scale Factor" [1],
+      "Obliquity Factor"      [1]:
                               for "Fringes" h = v * scale * obliquity * wavelength, for "Waves"
                               h = v * wavelength,
       "X Converter", "Y Converter"

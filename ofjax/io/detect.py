@@ -53,7 +53,8 @@ def load(path: str | Path, layout: str | None = None, um_per_unit: float | None 
   elif not path.is_dir():
     raise UserError(f"{path}: folder not found; give a scene folder")
   if um_per_unit is not None and layout != "opticfusion":
-    raise UserError(f"--um-per-unit: the {layout} layout is already in micrometres; drop the option")
+    raise UserError(f"--um-per-unit: the {layout} layout is already in micrometres; drop the "
+                    "option")
   if pixel_size is not None and layout != "raw":
     raise UserError(f"--pixel-size: the {layout} layout stores its pixel sizes; drop the option")
   if layout == "native":

@@ -90,7 +90,7 @@ def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
 
 def read_image(path: str | Path) -> np.ndarray:
   """[H, W, 3] float32 RGB in [0, 1] from a PNG, JPEG or TIFF photo, EXIF orientation applied."""
-  from PIL import Image, ImageOps, UnidentifiedImageError
+  from PIL import Image, ImageOps
   path = Path(path)
   if not path.is_file():
     raise UserError(f"{path}: photo not found; check the path")
@@ -115,9 +115,7 @@ def read_image(path: str | Path) -> np.ndarray:
       return _scale_to_unit(np.asarray(im.convert("RGB")), path)
   except UserError:
     raise
-  except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as e:
-    raise _fail(path, f"cannot be read as an image ({type(e).__name__}: {e})") from None
-  except Exception as e:  # noqa: BLE001 - pypng / tifffile raise their own kinds on corrupt files
+  except Exception as e:  # noqa: BLE001 - PIL / pypng / tifffile raise many kinds on corrupt files
     raise _fail(path, f"cannot be read as an image ({type(e).__name__}: {e})") from None
 
 
@@ -152,7 +150,7 @@ def exif_intrinsics(path: str | Path, shape: tuple[int, int]) -> np.ndarray | No
   fx = fy = None
   if f_mm is not None and xres is not None and unit_mm is not None:
     yres = _rational(tags.get(EXIF_FOCAL_PLANE_YRES)) or xres
-    # The focal-plane resolutions are along the sensor's axes, which a transposing orientation swaps.
+    # The focal-plane resolutions are along the sensor's axes; a transposing orientation swaps them.
     fx, fy = f_mm * xres / unit_mm, f_mm * yres / unit_mm
     if swap:
       fx, fy = fy, fx
@@ -175,5 +173,5 @@ def check_same_size(paths: list[Path], images: list[np.ndarray]) -> None:
 
 def list_photos(directory: Path) -> list[Path]:
   """The photos in `directory`, sorted by name (hidden files skipped)."""
-  return sorted(p for p in directory.iterdir()
-                if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith("."))
+  return sorted(p for p in directory.iterdir() if p.is_file()
+                and p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith("."))

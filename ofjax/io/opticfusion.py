@@ -71,7 +71,7 @@ def _finite_matrix(values, shape, path: Path, what: str) -> np.ndarray:
 
 
 def rigidify(m: np.ndarray, path: Path, what: str) -> tuple[np.ndarray, float]:
-  """(rigid [4, 4] c2w, uniform scale s) from a similarity [4, 4]: rotation = nearest rotation of M/s.
+  """(rigid [4, 4] c2w, uniform scale s) of a similarity [4, 4]; rotation = nearest rotation to M/s.
 
   The translation is kept as is; a reflection or a non-uniform scale is a UserError.
   """
@@ -259,7 +259,8 @@ def load_opticfusion(directory: str | Path, um_per_unit: float | None = None) ->
     factor, units = 1.0, LAYOUT_UNIT
   else:
     factor, units = check_um_per_unit(um_per_unit), "um"
-  scans = sorted(p for p in wl.iterdir() if p.suffix.lower() == ".npz" and not p.name.startswith("."))
+  scans = sorted(p for p in wl.iterdir()
+                 if p.suffix.lower() == ".npz" and not p.name.startswith("."))
   if not scans:
     raise UserError(f"{wl}: no .npz scans; the OpticFusion layout keeps the WLI scans as "
                     "wl/0000.npz ...")

@@ -47,8 +47,8 @@ def load_raw(directory: str | Path, pixel_size=None) -> Scene:
                       f"{directory}/{sub}/")
   wli_files = list_wli_files(directory / WLI_DIR)
   if not wli_files:
-    raise UserError(f"{directory / WLI_DIR}: no WLI files; put the measurements there as one of "
-                    f"{', '.join(wli.wli_extensions())}")
+    raise UserError(f"{directory / WLI_DIR}: no WLI files; put the measurements there as "
+                    f"{wli.FORMATS_HINT}")
   photos = om.list_photos(directory / OM_DIR)
   if not photos:
     raise UserError(f"{directory / OM_DIR}: no photos; put the OM photos there as "

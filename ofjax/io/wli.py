@@ -5,8 +5,8 @@ Readers, picked by the file's content first (magic bytes) and its extension seco
   surfalize formats     .x3p .sur .sdf .plu .plux .opd .vk3/.vk4/.vk6/.vk7 .gwy .al3d .os3d .zmg
                         .nms .tmd .xyz .zon .lext .oir/.poir .hdat .sflz .fits and Zygo MetroPro
                         .dat, through `surfalize.Surface.load`: heights and steps in um, voids NaN.
-  .npy / .npz / .tif(f) plain arrays of heights in um (npz: the array `height`, `z` or `data`, or its
-                        only array); the pixel size is not in the file and must be given
+  .npy / .npz / .tif(f) plain arrays of heights in um (npz: the array `height`, `z` or `data`, or
+                        its only array); the pixel size is not in the file and must be given
                         (`pixel_size=`, CLI `--pixel-size UM`).
 
 A height map is `HeightMap.height`: [H, W] float64 um, NaN = void; row r, column c is the sample
@@ -43,6 +43,8 @@ PLAIN_EXTENSIONS = (".npy", ".npz", ".tif", ".tiff")
 NPZ_HEIGHT_KEYS = ("height", "z", "data")
 MIN_SIZE = 2  # a map needs at least 2 x 2 pixels to have a lateral extent
 DATUM_KEY = "height_datum_um"
+FORMATS_HINT = (".datx, a surfalize format (.x3p .sur .plu .opd .dat .vk4 .gwy ...) or a plain "
+                ".npy/.npz/.tif height map")
 
 
 @dataclasses.dataclass
@@ -56,11 +58,6 @@ class HeightMap:
 def surfalize_extensions() -> tuple[str, ...]:
   import surfalize.file
   return tuple(sorted(surfalize.file.supported_formats_read))
-
-
-def wli_extensions() -> tuple[str, ...]:
-  """Every file extension a WLI reader exists for."""
-  return (".datx",) + PLAIN_EXTENSIONS + surfalize_extensions()
 
 
 def _magic(path: Path) -> bytes:
@@ -132,8 +129,8 @@ def _read_plain(path: Path, kind: str, pixel_size) -> HeightMap:
         keys = list(z.keys())
         key = next((k for k in NPZ_HEIGHT_KEYS if k in keys), keys[0] if len(keys) == 1 else None)
         if key is None:
-          raise UserError(f"{path}: holds arrays {keys} but none named {' / '.join(NPZ_HEIGHT_KEYS)}"
-                          "; save the heights as `height`")
+          raise UserError(f"{path}: holds arrays {keys} but none named "
+                          f"{' / '.join(NPZ_HEIGHT_KEYS)}; save the heights as `height`")
         arr = z[key]
   except UserError:
     raise
@@ -154,13 +151,14 @@ def read_height_map(path: str | Path, pixel_size=None) -> HeightMap:
   try:
     magic = _magic(path)
   except OSError as e:
-    raise UserError(f"{path}: cannot open the WLI file ({e.strerror}); check its permissions") from None
+    raise UserError(f"{path}: cannot open the WLI file ({e.strerror}); check its "
+                    "permissions") from None
   if magic.startswith(HDF5_MAGIC):
     from ofjax.io import datx
     return datx.read_datx(path)
   if ext == ".datx":
-    raise UserError(f"{path}: is not an HDF5 file, so not a Zygo .datx (truncated or mislabelled?); "
-                    "re-export it from Mx")
+    raise UserError(f"{path}: is not an HDF5 file, so not a Zygo .datx (truncated or "
+                    "mislabelled?); re-export it from Mx")
   if magic.startswith(NPY_MAGIC) or ext == ".npy":
     return _read_plain(path, "npy", pixel_size)
   if ext == ".npz" or (magic.startswith(ZIP_MAGIC) and not ext and zipfile.is_zipfile(path)):
@@ -170,11 +168,11 @@ def read_height_map(path: str | Path, pixel_size=None) -> HeightMap:
   if ext in surfalize_extensions():
     return _read_surfalize(path)
   raise UserError(f"{path}: unknown WLI file type {ext or '(no extension)'!r}; export the "
-                  f"measurement as one of {', '.join(wli_extensions())}")
+                  f"measurement as {FORMATS_HINT}")
 
 
 def to_scan(name: str, hm: HeightMap) -> WLIScan:
-  """The height map as an unposed orthographic WLI scan, depth = datum - height (module docstring)."""
+  """The height map as an unposed orthographic WLI scan: depth = datum - height (module doc)."""
   datum = float(np.nanmax(hm.height))
   depth = (datum - hm.height).astype(np.float32)
   return WLIScan(name, depth, hm.pixel_size, prior={DATUM_KEY: datum})
