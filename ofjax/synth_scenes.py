@@ -85,12 +85,14 @@ def textured(noise: Noise, base, period: float, contrast: float, channel: int,
 
 def by_part(noise: Noise, palette, period: float, contrast: float, channel: int,
             seed: int) -> Albedo:
-  """Each part takes one colour of `palette` (chosen by a seeded hash of its id), with noise."""
+  """Part k takes colour palette[k % len(palette)], its brightness jittered by a seeded hash of
+  k, and fractal noise on top."""
   palette = np.asarray(palette, np.float32)
-  choice = np.random.default_rng([seed, 11]).integers(0, len(palette), 4096)
+  jitter = np.random.default_rng([seed, 11]).uniform(0.8, 1.2, 4096).astype(np.float32)
 
   def albedo(p: np.ndarray, part: np.ndarray) -> np.ndarray:
-    base = palette[choice[np.asarray(part) % len(choice)]]
+    part = np.asarray(part)
+    base = palette[part % len(palette)] * jitter[part % len(jitter)][:, None]
     light = noise(p, period, 3, channel)
     return np.clip(base * (1.0 - contrast / 2 + contrast * light[:, None]), 0.0, 1.0)
 
@@ -150,7 +152,7 @@ def seed_scene(seed: int) -> Sample:
   noise = Noise(seed)
   coat = Material("seed coat", 0.1, textured(noise, (0.50, 0.31, 0.16), 9.0, 0.75, 10,
                                              speckle=0.6, tint=0.12))
-  wafer = Material("polished substrate", 0.85, textured(noise, (0.46, 0.47, 0.50), 14.0, 0.6, 20))
+  wafer = Material("polished substrate", 0.85, textured(noise, (0.46, 0.47, 0.50), 8.0, 0.7, 20))
   a, b, c = 130.0, 80.0, 62.0  # semi-axes, um
   sphere = trimesh.creation.icosphere(subdivisions=6)
   u = np.asarray(sphere.vertices, np.float64)
@@ -181,7 +183,7 @@ def circuit_scene(seed: int) -> Sample:
                                             speckle=0.3))
   epoxy = Material("chip epoxy", 0.3, textured(noise, (0.16, 0.16, 0.17), 7.0, 0.9, 30,
                                                speckle=0.5, tint=0.2))
-  half, t_cu, h_chip, wall = 215.0, 18.0, 70.0, 2.0
+  half, t_cu, h_chip, wall = 200.0, 18.0, 70.0, 2.0
   chip = (rng.uniform(-15, 15), rng.uniform(-15, 15), 75.0, 52.0)  # cx, cy, hx, hy
   traces, pads = [], []
   for side in range(4):  # pins leave the chip on all four sides and bend by 45 degrees
@@ -192,8 +194,8 @@ def circuit_scene(seed: int) -> Sample:
     for k in range(n):
       off = (k - (n - 1) / 2) * 2.1 * reach / n
       start = np.array(chip[:2]) + fwd * (reach - 10) + lat * off
-      bend = start + fwd * rng.uniform(35, 55)
-      end = bend + (fwd + lat * rng.choice([-1, 1])) / np.sqrt(2) * rng.uniform(40, 70)
+      bend = start + fwd * rng.uniform(30, 45)
+      end = bend + (fwd + lat * rng.choice([-1, 1])) / np.sqrt(2) * rng.uniform(35, 60)
       w = rng.uniform(12, 22)
       traces += [(start, bend, w), (bend, end, w)]
       pads.append((end, rng.uniform(14, 20)))
@@ -229,6 +231,8 @@ def wing_scene(seed: int) -> Sample:
   vein = Material("vein", 0.2, textured(noise, (0.20, 0.13, 0.08), 6.0, 0.6, 40, speckle=0.4))
   half, z_mem, length, width, pitch_x, pitch_y, lift = 170.0, 6.0, 62.0, 34.0, 42.0, 30.0, 7.0
   jitter = rng.uniform(-3, 3, (64, 64, 2))
+  eye = rng.uniform(-40, 40, 2)  # an eyespot: rings of colour around this point
+  stray = (rng.random((64, 64)) < 0.1).astype(int)  # a few scales break the pattern
   veins = [((-half, rng.uniform(-60, -30)), (half, rng.uniform(20, 50)), 14.0),
            ((rng.uniform(-40, 0), -half), (rng.uniform(40, 90), half), 11.0)]
 
@@ -242,14 +246,17 @@ def wing_scene(seed: int) -> Sample:
         jx, jy = jitter[i % 64, j % 64]
         x0, y0 = i * pitch_x + jx, (j + 0.5 * (i % 2)) * pitch_y + jy
         s = (x - x0) / length  # 0 at the scale's base, 1 at its tip
-        lat = (y - y0) / (width / 2)
-        shape = np.minimum(np.minimum(s, 1 - s) * length, (1 - np.abs(lat)**2.5) * width / 2)
+        # half width: narrow stalk at the base, widest at 60 %, a rounded tip
+        hw = width / 2 * np.sqrt(np.clip(1 - ((s - 0.6) / np.where(s < 0.6, 0.75, 0.4))**2, 0, 1))
+        shape = np.minimum(np.minimum(s, 1 - s) * length, hw - np.abs(y - y0))
         shape = np.minimum(shape, inside)
         zs = z_mem + 1.5 + lift * np.clip(s, 0, 1) + 0.5 * np.cos(2 * np.pi * (y - y0) / 4.0)
         zs = np.where(shape > 0, zs * ramp(shape, 1.5) + z * (1 - ramp(shape, 1.5)), -np.inf)
         win = zs > z
         z, mat = np.where(win, zs, z), np.where(win, 2, mat)
-        part = np.where(win, (i + 7) * 16 + (j + 8), part)
+        ring = int(np.hypot(x0 + 0.6 * length - eye[0], y0 - eye[1]) // 38)
+        colour = (ring + stray[i % 64, j % 64]) % len(palette)
+        part = np.where(win, ((i + 7) * 16 + (j + 8)) * len(palette) + colour, part)
     for a, b, r in veins:
       d = segment_distance(x, y, a, b)
       zv = z_mem + np.sqrt(np.clip(r * r - d * d, 0, None)) * 1.1
