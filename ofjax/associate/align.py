@@ -26,6 +26,7 @@ SEED_GATE_SPREADS = 0.3  # coarse ICP gate of the seeds, in robust spreads
 FINAL_GATE_VOXELS = 3.0  # last scaled-ICP gate, in P_wli voxels (a few WLI pixels)
 GATE_SHRINK = 0.5  # the gate halves between ICP rounds ...
 SCORE_GATE_VOXELS = 6.0  # ... seeds are scored by the share of P_om within this many voxels
+SCORE_GATE_COARSE_VOXELS = 2.0  # ... or of global-resolution voxels, whichever is wider
 
 
 @dataclasses.dataclass
@@ -97,13 +98,16 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     rot = _rz(2 * np.pi * k / YAW_STEPS) @ up
     seeds.append(("cameras", _similarity(s0, rot, c_wli - s0 * rot @ c_om)))
   seed_gate = SEED_GATE_SPREADS * r_wli
-  score_gate = SCORE_GATE_VOXELS * wli_voxel_um
+  # Seeds are refined and scored on P_wli at the global resolution: wide gates on the full cloud
+  # would cost seconds per ICP.
+  tgt_coarse = tgt.voxel_down_sample(gv)
+  score_gate = max(SCORE_GATE_VOXELS * wli_voxel_um, SCORE_GATE_COARSE_VOXELS * gv)
   best = None
   for name, init in seeds:
-    res = register.icp(src, tgt, init, seed_gate, point_to_plane=False, with_scaling=True)
-    res = register.icp(src, tgt, res.transformation, seed_gate * GATE_SHRINK, point_to_plane=False,
-                       with_scaling=True)
-    score = o3d.pipelines.registration.evaluate_registration(src, tgt, score_gate,
+    res = register.icp(src, tgt_coarse, init, seed_gate, point_to_plane=False, with_scaling=True)
+    res = register.icp(src, tgt_coarse, res.transformation, seed_gate * GATE_SHRINK,
+                       point_to_plane=False, with_scaling=True)
+    score = o3d.pipelines.registration.evaluate_registration(src, tgt_coarse, score_gate,
                                                              res.transformation)
     if best is None or score.fitness > best[0]:
       best = (score.fitness, name, np.asarray(res.transformation))

@@ -28,6 +28,7 @@ MAX_IMAGE_SIZE = 1600  # SIFT on at most this many pixels along the longest side
 MAX_NUM_FEATURES = 4096  # SIFT keypoints per photo; enough for hundreds of matches per pair
 MIN_TRACK_LENGTH = 3  # P_om keeps points seen in at least this many photos ...
 MAX_POINT_ERROR_PX = 1.0  # ... with a mean reprojection error of at most this (pixels)
+QUIET_LOG_LEVEL = 1  # glog level while pycolmap runs: warnings and errors only
 SAME_K_RTOL = 1e-6  # photos whose intrinsics differ by more than this do not share one camera
 
 
@@ -85,19 +86,11 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
   extraction = pycolmap.FeatureExtractionOptions()
   extraction.max_image_size = max_image_size
   extraction.sift.max_num_features = max_num_features
-  pycolmap.extract_features(db, workdir / "images", camera_mode=pycolmap.CameraMode.SINGLE,
-                            reader_options=reader, extraction_options=extraction,
-                            device=pycolmap.Device.cpu)
-  pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
-  opts = pycolmap.IncrementalPipelineOptions()
-  opts.random_seed = seed
-  opts.mapper.random_seed = seed
-  opts.triangulation.random_seed = seed
-  if K is not None:  # known intrinsics: keep them, the poses then carry all the freedom
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.mapper.abs_pose_refine_focal_length = False
-  recs = pycolmap.incremental_mapping(db, workdir / "images", workdir / "sparse", options=opts)
+  quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, QUIET_LOG_LEVEL
+  try:
+    recs = _reconstruct(db, workdir, K, reader, extraction, seed)
+  finally:
+    pycolmap.logging.minloglevel = quiet
   if not recs:
     raise UserError(f"{scene_dir}/om: structure-from-motion found no model (too few matching "
                     "features); take photos with more overlap and texture")
@@ -125,3 +118,23 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
                    np.asarray(cols, np.uint8).reshape(-1, 3), missing,
                    float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
                    time.perf_counter() - t0)
+
+
+def _reconstruct(db: Path, workdir: Path, K: np.ndarray | None,
+                 reader: pycolmap.ImageReaderOptions,
+                 extraction: pycolmap.FeatureExtractionOptions,
+                 seed: int) -> dict[int, pycolmap.Reconstruction]:
+  """pycolmap's three stages: features, exhaustive matches, incremental mapping."""
+  pycolmap.extract_features(db, workdir / "images", camera_mode=pycolmap.CameraMode.SINGLE,
+                            reader_options=reader, extraction_options=extraction,
+                            device=pycolmap.Device.cpu)
+  pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+  opts = pycolmap.IncrementalPipelineOptions()
+  opts.random_seed = seed
+  opts.mapper.random_seed = seed
+  opts.triangulation.random_seed = seed
+  if K is not None:  # known intrinsics: keep them, the poses then carry all the freedom
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.mapper.abs_pose_refine_focal_length = False
+  return pycolmap.incremental_mapping(db, workdir / "images", workdir / "sparse", options=opts)
