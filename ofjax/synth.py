@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 import xml.etree.ElementTree as ET
@@ -289,7 +288,8 @@ def render_wli(mesh: SynthMesh, rc, scan: scn.WLIScan, rng: np.random.Generator,
   o, d = scn.wli_rays(scan)
   t, ids, uvs, ok = cast(rc, o, d)
   n = mesh.normals(ids.ravel(), uvs.reshape(-1, 2)).reshape(d.shape)
-  alpha = np.degrees(np.arccos(np.clip(-(n * d).sum(-1), -1.0, 1.0)))
+  # |cos|: the instrument sees a surface from either side (user meshes may have flipped faces)
+  alpha = np.degrees(np.arccos(np.clip(np.abs((n * d).sum(-1)), 0.0, 1.0)))
   p = valid_probability(alpha, mesh.betas[mesh.face_material[ids]], na)
   keep = ok & (rng.random(t.shape) < p)
   return np.where(keep, t, np.nan).astype(np.float32)
@@ -303,9 +303,10 @@ def render_om(mesh: SynthMesh, rc, photo: scn.OMImage) -> np.ndarray:
   p = o + t[:, None] * d
   n = mesh.normals(ids, uvs)
   n = np.where(((n * d).sum(-1) > 0)[:, None], -n, n)  # seen from behind: shade the side seen
-  rot = photo.c2w[:3, :3]
-  distance = np.linalg.norm(photo.c2w[:3, 3])
-  light = photo.c2w[:3, 3] - rot[:, 1] * distance * np.tan(np.radians(OM_LIGHT_OFFSET_DEG))
+  # the light sits above the objective (image up = -y_cam), OM_LIGHT_OFFSET_DEG off its axis as
+  # seen from the sample near the world origin
+  rot, centre = photo.c2w[:3, :3], photo.c2w[:3, 3]
+  light = centre - rot[:, 1] * np.linalg.norm(centre) * np.tan(np.radians(OM_LIGHT_OFFSET_DEG))
   l = light - p
   l /= np.linalg.norm(l, axis=-1, keepdims=True)
   hvec = l - d

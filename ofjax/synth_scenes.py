@@ -286,8 +286,9 @@ def sensor_scene(seed: int) -> Sample:
   def field(x, y):
     mass = box_signed(x, y, 0, 0, m, m)
     # release holes on a square lattice, and fine grooves (a diffraction grating) across the mass
-    hx, hy = (x + hole_pitch / 2) % hole_pitch - hole_pitch / 2, (y + hole_pitch / 2) % hole_pitch
-    holes = np.minimum(hole / 2 - np.abs(hx), hole / 2 - np.abs(hy - hole_pitch / 2))
+    hx = (x + hole_pitch / 2) % hole_pitch - hole_pitch / 2
+    hy = (y + hole_pitch / 2) % hole_pitch - hole_pitch / 2
+    holes = np.minimum(hole / 2 - np.abs(hx), hole / 2 - np.abs(hy))
     mass = np.minimum(mass, -holes)
     gx = (x + skew * y) % groove_pitch
     grooves = groove_d * ramp(groove_w / 2 - np.abs(gx - groove_pitch / 2), 0.8)
@@ -298,7 +299,7 @@ def sensor_scene(seed: int) -> Sample:
       fy = (y + fpitch / 2) % fpitch - fpitch / 2
       xin = sgn * x - m
       moving = np.minimum(np.minimum(xin, finger_len - xin), finger_w / 2 - np.abs(fy))
-      fixed_y = (y + fpitch / 2 + fpitch / 2) % fpitch - fpitch / 2
+      fixed_y = y % fpitch - fpitch / 2  # fixed fingers sit half a pitch off the moving ones
       fixed = np.minimum(np.minimum(xin - 8, finger_len + 8 - xin), finger_w / 2 - np.abs(fixed_y))
       bar = box_signed(x, y, sgn * (m + finger_len + 16), 0, 8, m)
       band = m - np.abs(y)

@@ -4,7 +4,6 @@ layout writers, determinism, the CLI. Scenes render at the `tiny` resolution."""
 import math
 import time
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
