@@ -1,0 +1,104 @@
+"""Throughput of the hash encoding: samples per second of each way to use it, as a table.
+
+Rows (each jit-compiled, one call = `--points` samples, warm-up call excluded, median of repeats):
+  encode                 features only
+  encode_with_jacobian   features and the analytic d feats / dx
+  vg explicit jac        value_and_grad w.r.t. the tables of a loss using both feats and jac,
+                         jac from `encode_with_jacobian` (what train_step should do)
+  vg grad(encode)        the same loss with d sdf / dx from jax.grad of `encode` (its custom_jvp)
+  vg naive autodiff      the same loss with d sdf / dx from jax.grad through the gather (no
+                         custom_jvp): the nested-autodiff baseline
+The loss stands in for the SDF head: sdf = feats . a, loss = mean(sdf) + mean((|d sdf/dx| - 1)^2).
+
+  python benchmarks/encoding.py [--points 65536] [--log2-table-sizes 16 19] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ofjax import encoding
+from ofjax.config import HashConfig
+from ofjax.errors import cli
+
+
+def _loss_from_grad(sdf: jax.Array, grad_sdf: jax.Array) -> jax.Array:
+  """sdf: [N]; grad_sdf: [N, 3] -> a scalar like the SDF + eikonal terms of train_step."""
+  return jnp.mean(sdf) + jnp.mean((jnp.linalg.norm(grad_sdf, axis=-1) - 1.0) ** 2)
+
+
+def make_functions(cfg: HashConfig) -> dict[str, callable]:
+  """The benchmarked functions of (tables, x, a), each jit-compiled."""
+
+  def explicit(tables, x, a):
+    feats, jac = encoding.encode_with_jacobian(tables, x, cfg)
+    return _loss_from_grad(feats @ a, jnp.einsum("nkd,k->nd", jac, a))
+
+  def through(encode_fn):
+    def loss(tables, x, a):
+      sdf = lambda p: encode_fn(tables, p, cfg) @ a
+      return _loss_from_grad(sdf(x), jax.vmap(jax.grad(sdf))(x))
+    return loss
+
+  return {
+      "encode": jax.jit(lambda t, x, a: encoding.encode(t, x, cfg)),
+      "encode_with_jacobian": jax.jit(lambda t, x, a: encoding.encode_with_jacobian(t, x, cfg)),
+      "vg explicit jac": jax.jit(jax.value_and_grad(explicit)),
+      "vg grad(encode)": jax.jit(jax.value_and_grad(through(encoding.encode))),
+      "vg naive autodiff": jax.jit(jax.value_and_grad(through(encoding._encode_plain))),
+  }
+
+
+def time_call(fn, args, repeats: int) -> float:
+  """Median seconds per call, after one warm-up (compilation) call."""
+  jax.block_until_ready(fn(*args))
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - start)
+  return float(np.median(times))
+
+
+def machine() -> str:
+  dev = jax.devices()[0]
+  return (f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, Python "
+          f"{platform.python_version()}, JAX {jax.__version__}, backend {jax.default_backend()} "
+          f"({dev.device_kind})")
+
+
+@cli
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--points", type=int, default=2 ** 16, help="samples per call")
+  p.add_argument("--log2-table-sizes", type=int, nargs="+", default=[16, 19])
+  p.add_argument("--repeats", type=int, default=5, help="timed calls per row (median reported)")
+  p.add_argument("--only", nargs="*", default=None, help="run only these rows")
+  args = p.parse_args(argv)
+  print(machine())
+  print(f"{args.points} points per call, median of {args.repeats} calls, warm-up excluded")
+  print(f"{'log2 T':>6}  {'function':<22} {'ms/call':>9} {'samples/s':>12}")
+  rng = np.random.default_rng(0)
+  x = jnp.asarray(rng.uniform(-1.0, 1.0, (args.points, 3)), jnp.float32)
+  for log2_t in args.log2_table_sizes:
+    cfg = HashConfig(log2_table_size=log2_t)
+    tables = encoding.init_tables(jax.random.PRNGKey(0), cfg)
+    a = jnp.asarray(rng.normal(size=cfg.n_levels * cfg.n_features), jnp.float32)
+    for name, fn in make_functions(cfg).items():
+      if args.only and name not in args.only:
+        continue
+      sec = time_call(fn, (tables, x, a), args.repeats)
+      print(f"{log2_t:>6}  {name:<22} {sec * 1e3:>9.1f} {args.points / sec:>12,.0f}", flush=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
