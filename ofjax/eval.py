@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -61,17 +60,6 @@ def with_pixels(summary: dict, meta: dict) -> dict:
     return summary
   return {**summary, "wli_pixel_size_um": px,
           **{f"{k}_px": summary[f"{k}_um"] / px for k in LENGTH_KEYS}}
-
-
-def json_ready(value):
-  """NaN -> null, recursively (JSON has no NaN)."""
-  if isinstance(value, float) and math.isnan(value):
-    return None
-  if isinstance(value, dict):
-    return {k: json_ready(v) for k, v in value.items()}
-  if isinstance(value, list):
-    return [json_ready(v) for v in value]
-  return value
 
 
 def table(s: dict) -> str:
@@ -148,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.pred.name}: accuracy (mesh -> GT surface), mean "
           f"{summary['accuracy_um']:.3g} um", "distance (um)", vmax=vmax),
   }
-  result = json_ready({"pred": str(args.pred), "gt": str(args.gt), "units": "um", **summary,
+  result = metrics.json_ready({"pred": str(args.pred), "gt": str(args.gt), "units": "um", **summary,
                        **{k: str(v) for k, v in pngs.items()}})
   fileio.write_json(out / f"{stem}_eval.json", result)
   if args.json:

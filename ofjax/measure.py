@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ofjax import fileio, metrology, plots
+from ofjax import fileio, metrics, metrology, plots
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import MeshQuery, load_mesh
 
@@ -43,11 +43,6 @@ def parse_region(text: str) -> tuple[float, float, float, float]:
   if not (x1 > x0 and y1 > y0):
     raise UserError(f"--region {text!r}: needs X1 > X0 and Y1 > Y0 (the rectangle's corners in um)")
   return x0, y0, x1, y1
-
-
-def json_safe(value: float) -> float | None:
-  """NaN (e.g. Ssk of a flat region) becomes JSON null."""
-  return None if isinstance(value, float) and math.isnan(value) else value
 
 
 def default_output(mesh_path: Path, suffix: str) -> Path:
@@ -79,7 +74,7 @@ def roughness(args: argparse.Namespace) -> int:
           "n_samples": int(grid.z.size - n_missing), "n_missing": n_missing,
           "tilt_deg": grid.tilt_deg, "units": "um", "mesh": str(args.mesh), "png": str(png)}
   if args.json:
-    print(json.dumps({**{k: json_safe(v) for k, v in params.items()}, **meta}))
+    print(json.dumps(metrics.json_ready({**params, **meta})))  # a flat region's Ssk, Sku: null
   else:
     for k in metrology.PARAMETERS:
       unit = "" if k in ("Ssk", "Sku") else " um"

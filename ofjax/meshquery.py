@@ -21,6 +21,8 @@ import trimesh
 
 from ofjax.errors import UserError
 
+RAY_CLEARANCE = 1.0  # um: rays cast from outside a mesh start this far beyond its extent
+
 
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
   """Reads a triangle mesh (PLY/OBJ/GLB/...) in um, keeping its vertex order and colours."""

@@ -90,6 +90,17 @@ def evaluated_region(points: np.ndarray, gt_points: np.ndarray, margin: float) -
           & (points[:, 2] >= lo[2] - margin))
 
 
+def json_ready(value):
+  """NaN -> None, recursively through dicts and lists (JSON has no NaN)."""
+  if isinstance(value, float) and np.isnan(value):
+    return None
+  if isinstance(value, dict):
+    return {k: json_ready(v) for k, v in value.items()}
+  if isinstance(value, list):
+    return [json_ready(v) for v in value]
+  return value
+
+
 def psnr(mse: float) -> float:
   """dB of a mean squared error of colours in [0, 1]."""
   return float(-10.0 * np.log10(max(mse, MSE_FLOOR)))

@@ -19,11 +19,10 @@ import dataclasses
 
 import numpy as np
 
-from ofjax.meshquery import MeshQuery
+from ofjax.meshquery import RAY_CLEARANCE, MeshQuery
 
 PARAMETERS = ("Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku")
 MIN_SAMPLES = 3  # a plane has 3 unknowns; fewer finite heights cannot be levelled
-RAY_CLEARANCE = 1.0  # um: rays start this far beyond the mesh's extent along their direction
 
 
 def areal_parameters(z: np.ndarray) -> dict[str, float]:

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.axes_grid1 import make_axes_locatable
 
 from ofjax import fileio
-from ofjax.meshquery import MeshQuery
+from ofjax.meshquery import RAY_CLEARANCE, MeshQuery
 
 DPI = 120
 
@@ -105,7 +105,7 @@ def mesh_preview(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
   xs = lo[0] + (np.arange(max(1, round((hi[0] - lo[0]) / step))) + 0.5) * step
   ys = lo[1] + (np.arange(max(1, round((hi[1] - lo[1]) / step))) + 0.5) * step
   gx, gy = np.meshgrid(xs, ys)
-  top = hi[2] + 1.0 + (hi[2] - lo[2])  # start the rays well above the mesh
+  top = hi[2] + RAY_CLEARANCE
   query = MeshQuery(vertices, faces)
   origins = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, top)], -1)
   t, face, bary = query.cast(origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape))

@@ -85,6 +85,7 @@ def test_poisson_baseline_on_a_synthetic_scene(tmp_path):
                             str(out / "ground_truth" / "poses.json")]) == 0
   cfg = json.loads((tmp_path / "conv" / "config.json").read_text())
   assert cfg["units"] == "um" and cfg["faces"] > 1000
+  assert (tmp_path / "conv" / "mesh.png").stat().st_size > 0
   gt, meta = evaluation.load_ground_truth(out)
   mesh = trimesh.load(tmp_path / "conv" / "mesh.ply", process=False)
   s = evaluation.with_pixels(metrics.evaluate(mesh, gt, n_samples=50_000).summary, meta)

@@ -167,3 +167,12 @@ def test_measure_cli_bad_region(tmp_path, capsys, region):
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and "--region" in err
   assert not (tmp_path / "wave_roughness.png").exists()
+
+
+def test_flat_region_gives_null_skewness_in_json(tmp_path, capsys):
+  from ofjax import measure
+  path = tmp_path / "flat.ply"
+  heightfield_mesh(np.linspace(0, 10, 11), np.linspace(0, 10, 11), lambda x, y: 0 * x).export(path)
+  assert measure.main(["roughness", "--mesh", str(path), "--region", "2,2,8,8", "--json"]) == 0
+  out = json.loads(capsys.readouterr().out)
+  assert out["Sa"] == 0.0 and out["Ssk"] is None and out["Sku"] is None
