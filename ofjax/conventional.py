@@ -21,7 +21,7 @@ Steps (all in um, on a posed Scene):
                median edge length - the most frontal one (largest cos between the vertex normal
                and the direction to the camera) gives the colour, sampled bilinearly at the
                vertex's projection. Vertices no photo sees take their nearest coloured vertex's
-               colour.
+               colour (all grey when no photo sees any vertex).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from ofjax.errors import UserError, cli
 from ofjax.meshquery import MeshQuery
 
 MIN_POINTS = 100  # fewer WLI points cannot support a Poisson surface
+UNSEEN_GREY = 0.5  # the colour of every vertex when no photo sees any (a scene without OM photos)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,7 +111,7 @@ def project_colours(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
   edges = np.linalg.norm(vertices[faces] - vertices[np.roll(faces, 1, axis=1)], axis=-1)
   tol = cfg.visibility_tol * float(np.median(edges))
   best = np.zeros(len(vertices))  # cos of the chosen view; 0 = none yet
-  colours = np.zeros((len(vertices), 3))
+  colours = np.full((len(vertices), 3), UNSEEN_GREY)
   for photo in photos:
     centre = photo.c2w[:3, 3]
     to_cam = centre - vertices

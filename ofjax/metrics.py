@@ -5,7 +5,7 @@ its surface the instruments can see (the visible top), each with its albedo.
 
 Definitions (all distances are to surfaces, through open3d's RaycastingScene, not to samples):
   pred samples   `n_samples` points drawn uniformly by area on the predicted mesh (trimesh, seed
-                 fixed), each with its face normal and interpolated vertex colour.
+                 fixed), each with its face normal.
   evaluated region  the GT points only cover the visible top surface, and a prediction may close
                  itself underneath or extend past the scanned area, where nothing can be judged.
                  Accuracy therefore uses only the pred samples inside the GT points' XY bounding
@@ -66,18 +66,10 @@ class Evaluation:
 
 
 def sample_surface(mesh: trimesh.Trimesh, n: int = N_SAMPLES, seed: int = SEED
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-  """Points drawn uniformly by area on a mesh.
-
-  Returns:
-    points: [n, 3] um.
-    normals: [n, 3] unit face normals.
-    colours: [n, 3] RGB in [0, 1] interpolated from the vertex colours, or None without them.
-  """
-  points, face, bary = trimesh.sample.sample_surface(mesh, n, seed=seed, return_barycentric=True)
-  rgb = vertex_rgb(mesh)
-  colours = None if rgb is None else np.einsum("nk,nkc->nc", bary, rgb[mesh.faces[face]])
-  return np.asarray(points), np.asarray(mesh.face_normals[face]), colours
+                   ) -> tuple[np.ndarray, np.ndarray]:
+  """Points drawn uniformly by area on a mesh: points [n, 3] um and their unit face normals [n, 3]."""
+  points, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+  return np.asarray(points), np.asarray(mesh.face_normals[face])
 
 
 def evaluated_region(points: np.ndarray, gt_points: np.ndarray, margin: float) -> np.ndarray:
@@ -139,7 +131,7 @@ def evaluate(pred: trimesh.Trimesh, gt: GroundTruth, thresholds: tuple[float, ..
   """All metrics of the module docstring for one predicted mesh (um)."""
   diagonal = gt.diagonal
   pred_query, gt_query = MeshQuery.of(pred), MeshQuery.of(gt.mesh)
-  samples, sample_normals, _ = sample_surface(pred, n_samples, seed)
+  samples, sample_normals = sample_surface(pred, n_samples, seed)
   keep = evaluated_region(samples, gt.points, crop_margin * diagonal)
   samples, sample_normals = samples[keep], sample_normals[keep]
   to_gt = gt_query.closest(samples)

@@ -67,8 +67,9 @@ def scatter_map(path: str | Path, xy: np.ndarray, values: np.ndarray, title: str
   fig = Figure(figsize=(6.4, 5.2))
   ax = fig.add_subplot()
   order = np.argsort(values)  # draw large errors last so they are not hidden under small ones
+  vmax = max(vmax, np.finfo(np.float64).tiny)  # all-zero errors still need a colour range
   sc = ax.scatter(xy[order, 0], xy[order, 1], c=values[order], s=2, cmap=cmap, vmin=0.0,
-                  vmax=max(vmax, np.finfo(np.float64).tiny), linewidths=0)
+                  vmax=vmax, linewidths=0)
   ax.set(title=title, xlabel="x (um)", ylabel="y (um)", aspect="equal")
   colorbar(fig, ax, sc, label)
   return save(fig, path)
