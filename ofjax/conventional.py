@@ -146,8 +146,8 @@ def reconstruct(scene: scn.Scene, cfg: BaselineConfig = BaselineConfig()
                 ) -> tuple[trimesh.Trimesh, dict]:
   """The baseline mesh (um, vertex colours) of a posed scene, and what happened (counts, seconds)."""
   if not scene.posed:
-    raise UserError("the scene has cameras without poses; run `python -m ofjax.associate` or pass "
-                    "--poses SCENE_DIR/ground_truth/poses.json")
+    raise UserError(f"scene {scene.name!r} has cameras without poses; run `python -m "
+                    "ofjax.associate` on it or pass --poses SCENE_DIR/ground_truth/poses.json")
   clock = time.perf_counter()
   timing = {}
 
