@@ -17,6 +17,7 @@ import trimesh
 from scipy import ndimage
 
 from ofjax import scene as scene_lib
+from ofjax import synth
 from ofjax.associate.__main__ import main as associate_main
 from ofjax.associate import align, evaluate, wli
 from ofjax.errors import UserError
@@ -151,6 +152,12 @@ def test_prior_rotation_matches_turntable_geometry():
     # looks at the sample from polar angle t, azimuth a
     np.testing.assert_allclose(r[:, 2], -np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a),
                                                    np.cos(t)]), atol=1e-12)
+    # stage tilt about v: the part of image x along the azimuth u tips down by t, the rest stays
+    u, v = np.array([np.cos(a), np.sin(a), 0.0]), np.array([-np.sin(a), np.cos(a), 0.0])
+    x_ref = u[0] * (np.cos(t) * u - np.sin(t) * np.array([0, 0, 1.0])) + v[0] * v
+    np.testing.assert_allclose(r[:, 0], x_ref, atol=1e-12)
+    # the synthetic generator places its WLI cameras the same way
+    np.testing.assert_allclose(r, synth.view_rotation(tilt, az), atol=1e-12)
   np.testing.assert_allclose(wli.prior_rotation(None), np.diag([1.0, -1.0, -1.0]))
 
 

@@ -7,7 +7,9 @@ Seeds, each refined by scaled point-to-point ICP (open3d, with_scaling=True), be
   - the acquisition geometry: OM photos are taken from above the sample, so the mean viewing
     direction of the cameras points down (world -z); the remaining turn about z is swept.
 The second seed needs no features, so sparse, noisy SfM points (whose FPFH descriptors differ
-from those of the dense WLI cloud) still align.
+from those of the dense WLI cloud) still align. Seeds are scored coarsely; the best few distinct
+ones are refined to the end and the best final fitness wins (a nearly symmetric sample fits its
+turned copy almost as well at a coarse gate).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ FINAL_GATE_VOXELS = 3.0  # last scaled-ICP gate, in P_wli voxels (a few WLI pixe
 GATE_SHRINK = 0.5  # the gate halves between ICP rounds ...
 SCORE_GATE_VOXELS = 6.0  # ... seeds are scored by the share of P_om within this many voxels
 SCORE_GATE_COARSE_VOXELS = 2.0  # ... or of global-resolution voxels, whichever is wider
+FINALISTS = 4  # the best-scored distinct seeds refined to the end
+DISTINCT_DEG = 10.0  # seeds whose rotations differ by less than this are the same solution
 
 
 @dataclasses.dataclass
@@ -68,6 +72,29 @@ def _rz(a: float) -> np.ndarray:
   return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
 
 
+def _angle_deg(r0: np.ndarray, r1: np.ndarray) -> float:
+  return float(np.degrees(np.arccos(np.clip((np.trace(r0.T @ r1) - 1) / 2, -1.0, 1.0))))
+
+
+def _refine(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
+  """Scaled point-to-point ICP with a halving gate down to `final_gate`, then a rigid
+  point-to-plane ICP at the found scale -> (S [4, 4], open3d result of the last ICP)."""
+  gate = seed_gate * GATE_SHRINK
+  while True:
+    gate = max(gate * GATE_SHRINK, final_gate)
+    res = register.icp(src, tgt, S, gate, point_to_plane=False, with_scaling=True,
+                       max_iterations=100)
+    S = np.asarray(res.transformation)
+    if gate <= final_gate:
+      break
+  # Point-to-point pairs a sparse SfM point with the nearest WLI sample, not the surface, which
+  # tilts the fit by a few tenths of a degree; a last rigid point-to-plane ICP at the found
+  # scale removes that (open3d has no point-to-plane estimation with scaling).
+  scaled = o3d.geometry.PointCloud(src).transform(S)
+  res = register.icp(scaled, tgt, np.eye(4), final_gate, max_iterations=100)
+  return np.asarray(res.transformation) @ S, res
+
+
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
                     wli_voxel_um: float, om_forward: np.ndarray, min_fitness: float = 0.3,
                     scene_dir: str = "SCENE_DIR") -> Alignment:
@@ -102,31 +129,26 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   # would cost seconds per ICP.
   tgt_coarse = tgt.voxel_down_sample(gv)
   score_gate = max(SCORE_GATE_VOXELS * wli_voxel_um, SCORE_GATE_COARSE_VOXELS * gv)
-  best = None
+  scored = []
   for name, init in seeds:
     res = register.icp(src, tgt_coarse, init, seed_gate, point_to_plane=False, with_scaling=True)
     res = register.icp(src, tgt_coarse, res.transformation, seed_gate * GATE_SHRINK,
                        point_to_plane=False, with_scaling=True)
     score = o3d.pipelines.registration.evaluate_registration(src, tgt_coarse, score_gate,
                                                              res.transformation)
-    if best is None or score.fitness > best[0]:
-      best = (score.fitness, name, np.asarray(res.transformation))
-  _, seed, S = best
-  gate = seed_gate * GATE_SHRINK
+    scored.append((score.fitness, name, np.asarray(res.transformation)))
+  # A coarse score cannot tell a nearly symmetric sample from its turned copy; the best few
+  # seeds are therefore refined to the end and judged at the final gate.
+  scored.sort(key=lambda c: -c[0])
+  distinct = []  # seeds that converged to the same turn count once
+  for _, name, S0 in scored:
+    r0 = S0[:3, :3] / np.cbrt(np.linalg.det(S0[:3, :3]))
+    if all(_angle_deg(r0, r1) > DISTINCT_DEG for _, r1, _ in distinct):
+      distinct.append((name, r0, S0))
+  final = [_refine(src, tgt, S0, seed_gate, FINAL_GATE_VOXELS * wli_voxel_um) + (name,)
+           for name, _, S0 in distinct[:FINALISTS]]
+  S, res, seed = max(final, key=lambda c: (c[1].fitness, -c[1].inlier_rmse))
   final_gate = FINAL_GATE_VOXELS * wli_voxel_um
-  while True:  # shrink the gate down to a few WLI pixels
-    gate = max(gate * GATE_SHRINK, final_gate)
-    res = register.icp(src, tgt, S, gate, point_to_plane=False, with_scaling=True,
-                       max_iterations=100)
-    S = np.asarray(res.transformation)
-    if gate <= final_gate:
-      break
-  # Point-to-point pairs a sparse SfM point with the nearest WLI sample, not the surface, which
-  # tilts the fit by a few tenths of a degree; a last rigid point-to-plane ICP at the found
-  # scale removes that (open3d has no point-to-plane estimation with scaling).
-  scaled = o3d.geometry.PointCloud(src).transform(S)
-  res = register.icp(scaled, tgt, np.eye(4), final_gate, max_iterations=100)
-  S = np.asarray(res.transformation) @ S
   scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
   aligned = o3d.geometry.PointCloud(src).transform(S)
   residuals = np.asarray(aligned.compute_point_cloud_distance(tgt))

@@ -13,10 +13,11 @@ Frames and conventions:
 
 Acquisition prior (turntable): WLIScan.prior = {"tilt_deg": t, "azimuth_deg": a} says the
 instrument looked at the sample from polar angle t off the sample's +z axis, at azimuth a
-(counter-clockwise from +x about +z). The camera-to-sample rotation is
-  R(t, a) = Rz(a) @ Ry(t) @ TOP_FROM_CAMERA,   TOP_FROM_CAMERA = diag(1, -1, -1),
+(counter-clockwise from +x about +z), as if the stage had been tilted by t towards a:
+  R(t, a) = Rot(axis (-sin a, cos a, 0), angle t) @ TOP_FROM_CAMERA,  TOP_FROM_CAMERA = diag(1, -1, -1),
 i.e. the top view (t = 0) looks down -z with image x along +x and image y along -y, and a tilted
-view is the top view turned by t about the sample's y axis, then by a about its z axis. Its
+view is the top view turned by t about the horizontal axis perpendicular to the azimuth (the
+convention of ofjax.synth.view_rotation). Its
 viewing direction is -(sin t cos a, sin t sin a, cos t). The prior only seeds ICP; when it does
 not lead to a good fit (a different turntable convention, a wrong entry), FPFH + RANSAC global
 registration takes over, so a prior can never make the result worse than having none.
@@ -29,6 +30,7 @@ from collections import deque
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial.transform import Rotation
 
 from ofjax import scene as scene_lib
 from ofjax.associate import register
@@ -71,9 +73,8 @@ def prior_rotation(prior: dict[str, float] | None) -> np.ndarray:
     return TOP_FROM_CAMERA.copy()
   t = np.deg2rad(float(prior.get("tilt_deg", 0.0)))
   a = np.deg2rad(float(prior.get("azimuth_deg", 0.0)))
-  ry = np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]])
-  rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-  return rz @ ry @ TOP_FROM_CAMERA
+  axis = np.array([-np.sin(a), np.cos(a), 0.0])
+  return Rotation.from_rotvec(axis * t).as_matrix() @ TOP_FROM_CAMERA
 
 
 def scan_local_points(scan: scene_lib.WLIScan) -> np.ndarray:

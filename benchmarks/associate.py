@@ -1,0 +1,67 @@
+"""Association accuracy and time on the synthetic scenes: prints one table row per scene.
+
+Usage: python benchmarks/associate.py [--scenes seed circuit ...] [--resolution quick] [--out DIR]
+Each scene is generated with ofjax.synth, associated with `python -m ofjax.associate`, and its
+poses compared with ground_truth/poses.json after the rigid gauge fit (ofjax.associate.evaluate).
+Targets (issue 5): WLI <= 0.05 deg and <= 0.5 px; OM 37/37, <= 0.2 deg, centre <= 0.5% of the
+scene size, scale <= 0.5%.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ofjax import scene as scene_lib
+from ofjax import synth
+from ofjax.associate import evaluate
+from ofjax.associate.__main__ import main as associate_main
+
+
+def run(name: str, resolution: str, out: Path) -> dict:
+  d = out / f"{name}-{resolution}"
+  if not (d / "scene.json").exists():
+    synth.main(["--scene", name, "--out", str(d), "--resolution", resolution])
+  t0 = time.perf_counter()
+  rc = associate_main([str(d), "--report"])
+  seconds = time.perf_counter() - t0
+  if rc != 0:
+    return {"scene": name, "rc": rc, "seconds": seconds}
+  gt = scene_lib.load_poses(d / "ground_truth" / "poses.json")
+  truth = scene_lib.load_scene(d, poses=d / "ground_truth" / "poses.json")
+  size = float(np.linalg.norm(np.ptp(truth.wli_points(stride=4), axis=0)))
+  s = evaluate.pose_errors(scene_lib.load_poses(d / "poses.json"), gt, size)["summary"]
+  return {"scene": name, "rc": rc, "seconds": seconds, **s}
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--scenes", nargs="+", default=["seed"])
+  p.add_argument("--resolution", default="quick")
+  p.add_argument("--out", type=Path, default=Path("runs/bench_associate"))
+  args = p.parse_args(argv)
+  print(f"{'scene':10s} {'WLI deg':>8s} {'WLI px':>7s} {'OM reg':>6s} {'OM deg':>7s} "
+        f"{'centre%':>8s} {'scale%':>7s} {'time s':>7s}")
+  rows = []
+  for name in args.scenes:
+    r = run(name, args.resolution, args.out)
+    rows.append(r)
+    if r["rc"] != 0:
+      print(f"{name:10s} association failed (exit {r['rc']})")
+      continue
+    w, o = r["wli"], r["om"]
+    print(f"{name:10s} {w['max_rot_deg']:8.4f} {w['max_trans_px']:7.3f} "
+          f"{o['registered']:>3d}/{o['cameras']:<2d} {o['max_rot_deg']:7.3f} "
+          f"{100 * o.get('max_centre_rel', np.nan):8.3f} {100 * o.get('scale_error', np.nan):7.3f} "
+          f"{r['seconds']:7.1f}", flush=True)
+  (args.out / "associate.json").write_text(json.dumps(rows, indent=2))
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
