@@ -25,7 +25,8 @@ from ofjax.errors import UserError
 GLOBAL_VOXELS_ACROSS = 40  # global registration resolution: clouds ~40 voxels across their spread
 YAW_STEPS = 24  # the camera-geometry seed tries the turn about z every 15 degrees
 SEED_GATE_SPREADS = 0.3  # coarse ICP gate of the seeds, in robust spreads
-FINAL_GATE_VOXELS = 3.0  # last scaled-ICP gate, in P_wli voxels (a few WLI pixels)
+FINAL_GATE_VOXELS = 1.5  # last ICP gate in P_wli voxels: wider gates let SfM points where
+# the WLI has voids (steep sides) pull on the scale (seed scene: 1.2% scale error at 3 voxels)
 GATE_SHRINK = 0.5  # the gate halves between ICP rounds ...
 SCORE_GATE_VOXELS = 6.0  # ... seeds are scored by the share of P_om within this many voxels
 SCORE_GATE_COARSE_VOXELS = 2.0  # ... or of global-resolution voxels, whichever is wider
