@@ -25,6 +25,10 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
   fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp",
                              dir=path.parent)
   os.close(fd)
+  # mkstemp creates 0600; the user's files get the usual permissions (0666 less the umask).
+  umask = os.umask(0)
+  os.umask(umask)
+  os.chmod(tmp, 0o666 & ~umask)
   tmp = Path(tmp)
   try:
     yield tmp

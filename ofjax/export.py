@@ -1,0 +1,173 @@
+"""Mesh export: marching cubes of the SDF, vertex colours from the global colour network, in um.
+
+`python -m ofjax.export RUN_DIR [--resolution N] [--format ply|obj|glb] [--out FILE]`
+
+The SDF is evaluated in chunks on a grid over the observed region (the WLI points' box, stored in
+the run's config.json), the zero level set is extracted with scikit-image, floating components
+smaller than `min_component` of the largest are dropped, vertex colours come from G(x, n, f) only
+(paper Sec. 3.3.2: no view-dependent highlights), and coordinates are mapped back to micrometres.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+from skimage import measure
+
+from ofjax import checkpoint, fields, fileio
+from ofjax import scene as scene_lib
+from ofjax.config import Config
+from ofjax.errors import UserError, cli
+
+FORMATS = ("ply", "obj", "glb")
+CHUNK = 1 << 16  # points per device call: bounded memory on a laptop
+
+
+def evaluate_chunked(fn: Callable, x: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
+  """Applies a jitted point function to x: [N, 3] in fixed-size chunks (one compilation)."""
+  n = len(x)
+  out = []
+  for i in range(0, n, chunk):
+    part = x[i:i + chunk]
+    pad = chunk - len(part)
+    res = np.asarray(fn(jnp.asarray(np.pad(part, ((0, pad), (0, 0))), jnp.float32)))
+    out.append(res[:len(part)])
+  return np.concatenate(out, 0) if out else np.zeros((0,))
+
+
+def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
+  """Cells per axis: `resolution` along the longest side, the same spacing on the others."""
+  ext = np.asarray(hi) - np.asarray(lo)
+  return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
+
+
+def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int) -> trimesh.Trimesh:
+  """Zero level set of sdf_fn (positive outside) on a grid over [lo, hi]; faces point outside.
+
+  Returns a mesh in the coordinates of sdf_fn (empty when the SDF has no sign change there).
+  """
+  lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+  shape = grid_shape(lo, hi, resolution)
+  axes = [np.linspace(lo[i], hi[i], shape[i]) for i in range(3)]
+  pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+  vol = evaluate_chunked(sdf_fn, pts).reshape(shape)
+  if not (vol.min() < 0 < vol.max()):
+    return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
+  spacing = tuple((hi - lo) / (np.asarray(shape) - 1))
+  verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=spacing)
+  # scikit-image orients faces towards increasing values; the SDF grows outwards, so this is
+  # already outward. (Checked by tests/test_export.py on a sphere.)
+  return trimesh.Trimesh(verts + lo, faces, process=False)
+
+
+def drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
+  """Removes connected components with fewer than min_fraction of the largest one's faces."""
+  if len(mesh.faces) == 0:
+    return mesh
+  labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
+  counts = np.bincount(labels)
+  keep = counts[labels] >= min_fraction * counts.max()
+  out = mesh.copy()
+  out.update_faces(keep)
+  out.remove_unreferenced_vertices()
+  return out
+
+
+PLY_UNITS_COMMENT = b"comment units: micrometres (um)"
+
+
+def write_mesh(mesh: trimesh.Trimesh, path: Path, units: str = "um") -> Path:
+  """Writes PLY/OBJ/GLB atomically; a PLY says its unit in a header comment."""
+  fmt = path.suffix.lstrip(".").lower()
+  if fmt not in FORMATS:
+    raise UserError(f"{path}: unknown mesh format {fmt!r}; use one of {', '.join(FORMATS)}")
+  data = mesh.export(file_type=fmt)
+  if isinstance(data, str):
+    data = data.encode()
+  if fmt == "ply":
+    comment = PLY_UNITS_COMMENT if units == "um" else f"comment units: {units}".encode()
+    data = data.replace(b"\n", b"\n" + comment + b"\n", 1)
+  fileio.write_bytes(path, data)
+  return path
+
+
+def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolution: int,
+                 min_component: float = 0.05) -> trimesh.Trimesh:
+  """The trained SDF's surface in um with vertex colours from the global colour network."""
+  # params are an argument of the jitted functions, not a closed-over constant, so XLA neither
+  # embeds nor constant-folds the tables.
+  sdf_jit = jax.jit(fields.sdf_value, static_argnums=2)
+  color_jit = jax.jit(fields.global_color, static_argnums=2)
+  sdf_fn = lambda x: sdf_jit(params, x, cfg)
+  color_fn = lambda x: color_jit(params, x, cfg)
+  mesh = marching_cubes(sdf_fn, box[0], box[1], resolution)
+  mesh = drop_small_components(mesh, min_component)
+  if len(mesh.vertices):
+    rgb = evaluate_chunked(color_fn, np.asarray(mesh.vertices))
+    mesh.visual.vertex_colors = np.concatenate(
+        [np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], 1).astype(np.uint8)
+  mesh.vertices = norm.to_um(np.asarray(mesh.vertices))
+  return mesh
+
+
+def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
+               units: str = "um") -> Path:
+  """Extracts and writes the mesh; refuses non-finite parameters (a diverged run)."""
+  if not all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree_util.tree_leaves(params)):
+    raise UserError(f"{path}: the parameters are not finite (the run diverged); no mesh written")
+  mesh = extract_mesh(params, cfg, norm, box, resolution)
+  if len(mesh.faces) == 0:
+    raise UserError(f"{path}: the SDF has no zero crossing in the observed region; train longer "
+                    "or check the data")
+  return write_mesh(mesh, path, units)
+
+
+def load_run(run_dir: Path):
+  """(params, cfg, norm, box, units) of a run directory's newest checkpoint."""
+  from ofjax import train as train_lib
+  cfg_path = run_dir / "config.json"
+  if not cfg_path.is_file():
+    raise UserError(f"{cfg_path}: not found; is {run_dir} an ofjax run directory?")
+  meta = json.loads(cfg_path.read_text())
+  cfg = Config.from_dict(meta["config"])
+  template = fields.init_params(jax.random.PRNGKey(0), cfg)
+  opt_template = train_lib.make_optimizer(cfg).init(template)
+  state = checkpoint.restore(run_dir, template, opt_template)
+  if state is None:
+    raise UserError(f"{run_dir}: no checkpoint found; train first")
+  norm = scene_lib.Normalization(tuple(meta["normalization"]["center"]),
+                                 float(meta["normalization"]["scale"]))
+  box = tuple(tuple(b) for b in meta["observed_box"])
+  return state[1], cfg, norm, box, meta.get("units", "um")
+
+
+@cli
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(prog="python -m ofjax.export",
+                              description="Export the mesh (um, vertex colours) of a training run.")
+  p.add_argument("run_dir", help="run directory written by python -m ofjax.train")
+  p.add_argument("--resolution", type=int, help="grid cells along the longest side")
+  p.add_argument("--format", default="ply", choices=FORMATS)
+  p.add_argument("--out", help="output file (default: RUN_DIR/mesh.<format>)")
+  args = p.parse_args(argv)
+  run_dir = Path(args.run_dir)
+  params, cfg, norm, box, units = load_run(run_dir)
+  res = args.resolution or cfg.train.mesh_resolution
+  if res < 8:
+    raise UserError(f"--resolution {res}: use at least 8 cells")
+  out = Path(args.out) if args.out else run_dir / f"mesh.{args.format}"
+  path = export_run(params, cfg, norm, box, out, res, units)
+  print(f"ofjax: mesh written to {path}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

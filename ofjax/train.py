@@ -1,0 +1,365 @@
+"""Training: data on the device, the single jitted train_step, the loop, and the CLI.
+
+`python -m ofjax.train --data SCENE_DIR --out RUN_DIR [--preset cpu|paper] [--steps N] ...`
+
+One batch holds WLI and OM rays with a per-ray modality mask (DESIGN.md: equivalent to the
+reference's alternating batches): the first `n_wli` rays of every batch are WLI rays, the rest OM
+rays, each drawn uniformly over the pixels of its modality. Sampling is keyed by the step
+(jax.random.fold_in(seed, step)), never by a stateful generator, so a resumed run is exact.
+
+Coordinates inside training are normalised (scene.Normalization): WLI depths and pixel sizes are
+divided by the scale, camera centres shifted and scaled; rotations and OM intrinsics are unchanged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ofjax import cameras, checkpoint, fields, fileio, losses, render
+from ofjax import scene as scene_lib
+from ofjax.config import Config, resolve, PRESETS
+from ofjax.errors import UserError, cli
+
+MODALITIES = ("wli", "om")
+
+
+class TrainData(NamedTuple):
+  """Everything the step samples from, on the device, in normalised coordinates."""
+  wli_depth: jax.Array  # [Nw, H, W] float32 depth along the axis, 0 where void
+  wli_valid: jax.Array  # [Nw, H, W] bool
+  wli_c2w: jax.Array  # [Nw, 4, 4]
+  wli_pixel: jax.Array  # [Nw, 2] pixel size (sx, sy)
+  wli_hw: jax.Array  # [Nw, 2] image size (H, W)
+  om_rgb: jax.Array  # [No, H, W, 3] uint8
+  om_c2w: jax.Array  # [No, 4, 4]
+  om_K: jax.Array  # [No, 3, 3]
+  om_hw: jax.Array  # [No, 2]
+  up: jax.Array  # [3] unit vector from the sample into the WLI objective (minus the top scan's axis)
+  floor: jax.Array  # [] lowest WLI point along `up`: the substrate level
+
+
+def _stack_padded(maps: list[np.ndarray], fill) -> np.ndarray:
+  h = max(m.shape[0] for m in maps)
+  w = max(m.shape[1] for m in maps)
+  out = np.full((len(maps), h, w) + maps[0].shape[2:], fill, maps[0].dtype)
+  for i, m in enumerate(maps):
+    out[i, :m.shape[0], :m.shape[1]] = m
+  return out
+
+
+def _normalised_c2w(c2w: np.ndarray, norm: scene_lib.Normalization) -> np.ndarray:
+  out = np.array(c2w, np.float64)
+  out[:3, 3] = norm.to_norm(out[:3, 3])
+  return out
+
+
+def prepare_data(scene: scene_lib.Scene, norm: scene_lib.Normalization) -> TrainData:
+  """Host side: validates the posed scene and moves it, normalised, to the device."""
+  if not scene.wli:
+    raise UserError("the scene has no WLI scans; ofjax needs at least one WLI height map")
+  if not scene.om:
+    raise UserError("the scene has no OM photos; ofjax needs the optical-microscope images")
+  if not scene.posed:
+    raise UserError("the scene has cameras without poses; run `python -m ofjax.associate "
+                    "SCENE_DIR` or pass --poses")
+  depth = [np.nan_to_num(s.depth / norm.scale, nan=0.0).astype(np.float32) for s in scene.wli]
+  valid = [s.valid for s in scene.wli]
+  rgb = [np.round(np.clip(o.image, 0, 1) * 255).astype(np.uint8) for o in scene.om]
+  axes = np.stack([s.c2w[:3, 2] / np.linalg.norm(s.c2w[:3, 2]) for s in scene.wli])
+  # The scan whose axis is closest to the mean axis is the top scan; "up" points against it.
+  up = -axes[np.argmax(axes @ axes.mean(0))]
+  pts = norm.to_norm(scene.wli_points(stride=2))
+  return TrainData(
+      wli_depth=jnp.asarray(_stack_padded(depth, 0.0)),
+      wli_valid=jnp.asarray(_stack_padded(valid, False)),
+      wli_c2w=jnp.asarray(np.stack([_normalised_c2w(s.c2w, norm) for s in scene.wli]),
+                          jnp.float32),
+      wli_pixel=jnp.asarray([np.asarray(s.pixel_size) / norm.scale for s in scene.wli],
+                            jnp.float32),
+      wli_hw=jnp.asarray([s.shape for s in scene.wli], jnp.float32),
+      om_rgb=jnp.asarray(_stack_padded(rgb, 0)),
+      om_c2w=jnp.asarray(np.stack([_normalised_c2w(o.c2w, norm) for o in scene.om]), jnp.float32),
+      om_K=jnp.asarray(np.stack([o.K for o in scene.om]), jnp.float32),
+      om_hw=jnp.asarray([o.shape for o in scene.om], jnp.float32),
+      up=jnp.asarray(up, jnp.float32),
+      floor=jnp.asarray(float(np.min(pts @ up)), jnp.float32),
+  )
+
+
+def ray_split(cfg: Config) -> tuple[int, int]:
+  """(n_wli, n_om) rays per batch: equal shares when both modalities supervise."""
+  n = cfg.train.n_rays
+  mods = set(cfg.train.modalities)
+  if mods == {"wli"}:
+    return n, 0
+  if mods == {"om"}:
+    return 0, n
+  return n // 2, n - n // 2
+
+
+def _pick(key, n: int, hw):
+  """n uniform (camera, row, col) triples; hw: [C, 2] image sizes (all images sampled alike)."""
+  k_c, k_r, k_x = jax.random.split(key, 3)
+  cam = jax.random.randint(k_c, (n,), 0, hw.shape[0])
+  rows = jnp.floor(jax.random.uniform(k_r, (n,)) * hw[cam, 0]).astype(jnp.int32)
+  cols = jnp.floor(jax.random.uniform(k_x, (n,)) * hw[cam, 1]).astype(jnp.int32)
+  return cam, rows, cols
+
+
+def sample_batch(data: TrainData, key, cfg: Config) -> dict[str, jax.Array]:
+  """One ray batch: WLI rays first, then OM rays (fixed shapes, keyed by `key`).
+
+  Returns [R, ...] arrays: o, d, near, far, rgb (OM target), depth (WLI target), is_wli,
+  wli_ok (WLI ray with a measured depth), om_ok (OM ray whose pixel the box can explain).
+  """
+  n_wli, n_om = ray_split(cfg)
+  k_w, k_o = jax.random.split(key)
+  parts = []
+  if n_wli:
+    cam, r, c = _pick(k_w, n_wli, data.wli_hw)
+    o, d = cameras.orthographic_rays(data.wli_c2w[cam], data.wli_pixel[cam], data.wli_hw[cam], r, c)
+    parts.append(dict(o=o, d=d, rgb=jnp.zeros((n_wli, 3)), depth=data.wli_depth[cam, r, c],
+                      valid=data.wli_valid[cam, r, c], is_wli=jnp.ones((n_wli,), bool)))
+  if n_om:
+    cam, r, c = _pick(k_o, n_om, data.om_hw)
+    o, d = cameras.pinhole_rays(data.om_c2w[cam], data.om_K[cam], r, c)
+    # An OM pixel is explained by the box only if its ray meets the substrate level inside it.
+    t_floor = (data.floor - o @ data.up) / jnp.minimum(d @ data.up, -1e-6)
+    p = o + d * t_floor[:, None]
+    parts.append(dict(o=o, d=d, rgb=data.om_rgb[cam, r, c].astype(jnp.float32) / 255.0,
+                      depth=jnp.zeros((n_om,)), valid=jnp.all(jnp.abs(p) <= 1.0, -1),
+                      is_wli=jnp.zeros((n_om,), bool)))
+  batch = {k: jnp.concatenate([p[k] for p in parts], 0) for k in parts[0]}
+  near, far, hit = cameras.box_near_far(batch["o"], batch["d"])
+  far = jnp.where(hit, far, near + 1e-3)
+  valid = batch.pop("valid") & hit
+  batch.update(near=near, far=far, hit=hit, wli_ok=valid & batch["is_wli"],
+               om_ok=valid & ~batch["is_wli"])
+  return batch
+
+
+def lr_schedule(base: float, cfg: Config):
+  """Linear warm-up from 1% (reference) then exponential decay to cfg.optim.decay_to x base."""
+  oc, total = cfg.optim, cfg.train.steps
+
+  def schedule(step):
+    step = jnp.asarray(step, jnp.float32)
+    warm = base * (0.01 + 0.99 * step / max(oc.warmup_steps, 1))
+    frac = (step - oc.warmup_steps) / max(total - oc.warmup_steps, 1)
+    decay = base * oc.decay_to ** jnp.clip(frac, 0.0, 1.0)
+    return jnp.where(step < oc.warmup_steps, warm, decay)
+
+  return schedule
+
+
+def make_optimizer(cfg: Config) -> optax.GradientTransformation:
+  oc = cfg.optim
+  adam = lambda lr: optax.adam(lr_schedule(lr, cfg), b1=oc.b1, b2=oc.b2, eps=oc.eps)
+  labels = lambda params: {k: ("variance" if k == "variance" else "net") for k in params}
+  return optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels)
+
+
+def compute_losses(params, batch, key, step, cfg: Config):
+  """Renders the batch and returns (total, {"loss/<name>": value, ...})."""
+  geometry_fn, sdf_fn = fields.field_fns(params, cfg)
+  out = render.render_rays(geometry_fn, sdf_fn, batch["o"], batch["d"], batch["near"], batch["far"],
+                           key, fields.inv_s(params), render.cos_anneal_ratio(step, cfg.render),
+                           cfg.render, guide=batch["depth"], has_guide=batch["wli_ok"])
+  lc = cfg.loss
+  terms = {
+      "color": losses.color(out["color"], batch["rgb"], batch["om_ok"]),
+      "residual": losses.residual(out["color_res"], batch["om_ok"]),
+      "wli": losses.wli(out["depth"], batch["depth"], batch["wli_ok"]),
+      "eikonal": losses.eikonal(out["grad"], batch["hit"]),
+      "sparsity": losses.sparsity(out["sdf"], batch["hit"], lc.sparsity_scale),
+  }
+  total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
+  logs = {f"loss/{k}": v for k, v in terms.items()}
+  logs["loss/total"] = total
+  logs["inv_s"] = fields.inv_s(params)
+  return total, logs
+
+
+def create_train_step(cfg: Config, optimizer: optax.GradientTransformation):
+  """Returns the jitted step (params, opt_state, data, step) -> (params, opt_state, logs).
+
+  params and opt_state are donated; the batch is drawn inside from fold_in(seed, step).
+  """
+  base_key = jax.random.PRNGKey(cfg.train.seed)
+
+  def step_fn(params, opt_state, data: TrainData, step):
+    key = jax.random.fold_in(base_key, step)
+    k_batch, k_render = jax.random.split(key)
+    batch = sample_batch(data, k_batch, cfg)
+    chex.assert_shape(batch["o"], (cfg.train.n_rays, 3))
+    (_, logs), grads = jax.value_and_grad(compute_losses, has_aux=True)(params, batch, k_render,
+                                                                       step, cfg)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    params = optax.apply_updates(params, updates)
+    return params, opt_state, logs
+
+  return jax.jit(step_fn, donate_argnums=(0, 1))
+
+
+# --------------------------------------------------------------------------------------- the run
+
+
+@dataclasses.dataclass
+class RunResult:
+  params: Any
+  cfg: Config
+  norm: scene_lib.Normalization
+  box: tuple[tuple[float, ...], tuple[float, ...]]  # observed region in normalised coordinates
+  seconds: float
+
+
+def observed_box(scene: scene_lib.Scene, norm: scene_lib.Normalization, margin: float):
+  """Bounding box of the WLI points in normalised coordinates, grown by `margin` of its size."""
+  pts = norm.to_norm(scene.wli_points(stride=2))
+  lo, hi = pts.min(0), pts.max(0)
+  pad = margin * (hi - lo).max()
+  return tuple(np.maximum(lo - pad, -1.0).tolist()), tuple(np.minimum(hi + pad, 1.0).tolist())
+
+
+def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, progress: bool = True,
+          meta: dict | None = None) -> RunResult:
+  """Trains on a posed scene; with run_dir, writes config.json, metrics.jsonl, checkpoints, mesh."""
+  from tqdm import tqdm
+
+  norm = scene.normalization or scene_lib.compute_normalization(scene, cfg.train.box_margin)
+  box = observed_box(scene, norm, cfg.train.box_margin)
+  data = prepare_data(scene, norm)
+  optimizer = make_optimizer(cfg)
+  params = fields.init_params(jax.random.PRNGKey(cfg.train.seed), cfg)
+  opt_state = optimizer.init(params)
+  step_fn = create_train_step(cfg, optimizer)
+
+  metrics_file = None
+  if run_dir is not None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fileio.write_json(run_dir / "config.json", {
+        "config": cfg.to_dict(), "units": scene.units,
+        "normalization": dataclasses.asdict(norm), "observed_box": box,
+        "jax": jax.__version__, "backend": jax.default_backend(), **(meta or {})})
+    metrics_file = open(run_dir / "metrics.jsonl", "w")
+
+  t0 = time.time()
+  bar = tqdm(total=cfg.train.steps, disable=not progress, unit="it", dynamic_ncols=True,
+             desc="train")
+  try:
+    for step in range(cfg.train.steps):
+      params, opt_state, logs = step_fn(params, opt_state, data, jnp.int32(step))
+      last = step == cfg.train.steps - 1
+      if step % cfg.train.log_every == 0 or last:
+        logs = {k: float(v) for k, v in logs.items()}  # the only host sync in the loop
+        bar.set_postfix(loss=f"{logs['loss/total']:.4g}", wli=f"{logs['loss/wli']:.2e}",
+                        color=f"{logs['loss/color']:.2e}", refresh=False)
+        if metrics_file:
+          metrics_file.write(json.dumps({"step": step, "time_s": time.time() - t0, **logs}) + "\n")
+          metrics_file.flush()
+      if run_dir is not None and ((step + 1) % cfg.train.checkpoint_every == 0 or last):
+        checkpoint.save(run_dir, step + 1, params, opt_state, cfg.train.keep_checkpoints)
+      bar.update(1)
+  finally:
+    bar.close()
+    if metrics_file:
+      metrics_file.close()
+  jax.block_until_ready(params)
+  return RunResult(params, cfg, norm, box, time.time() - t0)
+
+
+# ------------------------------------------------------------------------------------------- CLI
+
+
+def build_parser() -> argparse.ArgumentParser:
+  p = argparse.ArgumentParser(
+      prog="python -m ofjax.train",
+      description="Fuse WLI depth and OM colour into a neural SDF and export a coloured mesh (um).")
+  p.add_argument("--data", required=True, help="scene directory (native bundle or OpticFusion layout)")
+  p.add_argument("--out", required=True, help="run directory to create")
+  p.add_argument("--preset", default="cpu", choices=sorted(PRESETS),
+                 help="cpu: fast default for a laptop CPU; paper: the paper's numbers")
+  p.add_argument("--steps", type=int, help="optimisation steps (default: the preset's)")
+  p.add_argument("--rays", type=int, help="rays per batch (default: the preset's)")
+  p.add_argument("--modalities", default="wli,om",
+                 help="which data supervise: wli,om (fused) | wli | om (the paper's ablations)")
+  p.add_argument("--no-residual", action="store_true", help="drop the residual colour branch")
+  p.add_argument("--seed", type=int, default=0, help="seed of init and ray sampling")
+  p.add_argument("--poses", help="poses file (default: SCENE_DIR/poses.json)")
+  p.add_argument("--um-per-unit", type=float,
+                 help="micrometres per unit of an OpticFusion-layout scene")
+  p.add_argument("--layout", choices=["native", "opticfusion", "raw"], help="force the data layout")
+  p.add_argument("--mesh-resolution", type=int, help="marching-cubes resolution of mesh.ply")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
+  p.add_argument("--quiet", action="store_true", help="no progress bar")
+  return p
+
+
+def config_from_args(args) -> Config:
+  mods = tuple(m.strip() for m in args.modalities.split(",") if m.strip())
+  if not mods or any(m not in MODALITIES for m in mods):
+    raise UserError(f"--modalities {args.modalities!r}: use wli,om | wli | om")
+  train_over: dict[str, Any] = {"modalities": mods, "seed": args.seed}
+  for name, value in (("steps", args.steps), ("n_rays", args.rays),
+                      ("mesh_resolution", args.mesh_resolution)):
+    if value is not None:
+      if value <= 0:
+        raise UserError(f"--{name.replace('n_', '').replace('_', '-')} {value}: must be positive")
+      train_over[name] = value
+  over: dict[str, dict[str, Any]] = {"train": train_over}
+  if args.no_residual:
+    over["model"] = {"residual": False}
+  cfg = resolve(args.preset, **over)
+  if args.steps is not None:
+    # A shorter run keeps the preset's schedule shape: cos-anneal ends with the run at the latest.
+    cfg = dataclasses.replace(cfg, render=dataclasses.replace(
+        cfg.render, cos_anneal_steps=min(cfg.render.cos_anneal_steps, args.steps)),
+                              optim=dataclasses.replace(
+                                  cfg.optim, warmup_steps=min(cfg.optim.warmup_steps,
+                                                              max(args.steps // 10, 1))))
+  return cfg
+
+
+def load_scene_for_training(args) -> scene_lib.Scene:
+  try:
+    from ofjax import io as ofio
+    loader = getattr(ofio, "load", None)
+  except ImportError:
+    loader = None
+  if loader is None:
+    return scene_lib.load_scene(args.data, poses=args.poses)
+  return loader(args.data, layout=args.layout, um_per_unit=args.um_per_unit, poses=args.poses)
+
+
+@cli
+def main(argv=None) -> int:
+  args = build_parser().parse_args(argv)
+  cfg = config_from_args(args)
+  run_dir = Path(args.out)
+  if (run_dir / "config.json").exists() and not args.overwrite:
+    raise UserError(f"{run_dir}: a run already exists there; choose another --out or pass "
+                    "--overwrite")
+  scene = load_scene_for_training(args)
+  result = train(scene, cfg, run_dir, progress=not args.quiet,
+                 meta={"data": str(Path(args.data).resolve()), "poses": args.poses})
+  from ofjax import export
+  mesh_path = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
+                                resolution=cfg.train.mesh_resolution, units=scene.units)
+  print(f"ofjax: trained {cfg.train.steps} steps in {result.seconds:.1f} s; mesh: {mesh_path}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
