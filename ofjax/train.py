@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ofjax import cameras, checkpoint, fields, fileio, losses, render
+from ofjax import cameras, checkpoint, fields, fileio, losses, parallel, render
 from ofjax import scene as scene_lib
 from ofjax.config import Config, resolve, PRESETS
 from ofjax.errors import UserError, cli
@@ -171,9 +171,13 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
   return optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels)
 
 
-def compute_losses(params, batch, key, step, cfg: Config):
-  """Renders the batch and returns (total, {"loss/<name>": value, ...})."""
-  geometry_fn, sdf_fn = fields.field_fns(params, cfg)
+def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns):
+  """Renders the batch and returns (total, {"loss/<name>": value, ...}).
+
+  field_fns: (params, cfg) -> (geometry_fn, sdf_fn) as fields.field_fns (benchmarks swap in a
+  nested-autodiff reference).
+  """
+  geometry_fn, sdf_fn = field_fns(params, cfg)
   out = render.render_rays(geometry_fn, sdf_fn, batch["o"], batch["d"], batch["near"], batch["far"],
                            key, fields.inv_s(params), render.cos_anneal_ratio(step, cfg.render),
                            cfg.render, guide=batch["depth"], has_guide=batch["wli_ok"])
@@ -192,25 +196,34 @@ def compute_losses(params, batch, key, step, cfg: Config):
   return total, logs
 
 
-def create_train_step(cfg: Config, optimizer: optax.GradientTransformation):
+def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
+                      field_fns=fields.field_fns, devices=None):
   """Returns the jitted step (params, opt_state, data, step) -> (params, opt_state, logs).
 
-  params and opt_state are donated; the batch is drawn inside from fold_in(seed, step).
+  params and opt_state are donated; the batch is drawn inside from fold_in(seed, step). The ray
+  batch is split over `devices` (default: all of jax.devices()) by ofjax.parallel, everything else
+  is replicated; on one device the program is the plain single-device one.
   """
   base_key = jax.random.PRNGKey(cfg.train.seed)
+  mesh = parallel.batch_mesh(devices)
+  parallel.check_divisible(cfg.train.n_rays, mesh)
 
   def step_fn(params, opt_state, data: TrainData, step):
     key = jax.random.fold_in(base_key, step)
     k_batch, k_render = jax.random.split(key)
-    batch = sample_batch(data, k_batch, cfg)
+    batch = parallel.shard_rays(sample_batch(data, k_batch, cfg), mesh)
     chex.assert_shape(batch["o"], (cfg.train.n_rays, 3))
     (_, logs), grads = jax.value_and_grad(compute_losses, has_aux=True)(params, batch, k_render,
-                                                                       step, cfg)
+                                                                       step, cfg, field_fns)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     params = optax.apply_updates(params, updates)
     return params, opt_state, logs
 
-  return jax.jit(step_fn, donate_argnums=(0, 1))
+  if mesh.size == 1:
+    return jax.jit(step_fn, donate_argnums=(0, 1))
+  everywhere = parallel.replicated(mesh)
+  return jax.jit(step_fn, donate_argnums=(0, 1), in_shardings=everywhere,
+                 out_shardings=everywhere)
 
 
 # --------------------------------------------------------------------------------------- the run
