@@ -2,6 +2,7 @@
 
 A checkpoint is RUN_DIR/checkpoints/step_<step:08d>.msgpack holding {"step", "params", "opt_state"};
 it is written to a temporary name and renamed, so a kill mid-write leaves the previous ones intact.
+The optimizer state includes the divergence guard's counters (ofjax.guard), so they resume too.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 from flax import serialization
 
 from ofjax import fileio
+from ofjax.errors import UserError
 
 _NAME = re.compile(r"^step_(\d{8})\.msgpack$")
 
@@ -44,7 +46,14 @@ def restore(run_dir, params_template, opt_state_template, step: int | None = Non
   if not steps:
     return None
   step = steps[-1] if step is None else step
-  data = (_dir(run_dir) / f"step_{step:08d}.msgpack").read_bytes()
+  path = _dir(run_dir) / f"step_{step:08d}.msgpack"
   template = {"step": np.int64(0), "params": params_template, "opt_state": opt_state_template}
-  state = serialization.from_bytes(template, data)
+  try:
+    state = serialization.from_bytes(template, path.read_bytes())
+  except FileNotFoundError:
+    raise UserError(f"{path}: checkpoint not found; pick one of steps {steps}") from None
+  except Exception as e:  # noqa: BLE001 - msgpack and flax raise many kinds on a foreign file
+    raise UserError(f"{path}: cannot restore this checkpoint ({type(e).__name__}); it belongs to "
+                    "another ofjax version or config, or is damaged: delete it to use the one "
+                    "before") from None
   return int(state["step"]), state["params"], state["opt_state"]

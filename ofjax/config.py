@@ -82,6 +82,7 @@ class TrainConfig:
   log_every: int = 100  # host sync + metrics.jsonl line every k steps
   checkpoint_every: int = 5000  # checkpoint every k steps
   keep_checkpoints: int = 2  # how many checkpoints to keep
+  max_skipped_in_a_row: int = 20  # divergence guard: this many non-finite steps in a row stop
   mesh_resolution: int = 256  # marching-cubes grid along the longest side of the observed box
   box_margin: float = 0.05  # margin around the WLI points, fraction of the box, before normalising
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ofjax import cameras, checkpoint, fields, fileio, losses, parallel, render
+from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, render
 from ofjax import scene as scene_lib
 from ofjax.config import Config, resolve, PRESETS
 from ofjax.errors import UserError, cli
@@ -168,7 +169,9 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
   oc = cfg.optim
   adam = lambda lr: optax.adam(lr_schedule(lr, cfg), b1=oc.b1, b2=oc.b2, eps=oc.eps)
   labels = lambda params: {k: ("variance" if k == "variance" else "net") for k in params}
-  return optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels)
+  # Divergence guard: a step with a non-finite gradient or update is skipped (ofjax.guard).
+  return guard.skip_non_finite(
+      optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels))
 
 
 def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns):
@@ -228,6 +231,10 @@ def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
 
 # --------------------------------------------------------------------------------------- the run
 
+METRICS = "metrics.jsonl"
+# Options that only say how a run is kept, not what it computes: --resume may change them.
+KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
+
 
 @dataclasses.dataclass
 class RunResult:
@@ -236,6 +243,8 @@ class RunResult:
   norm: scene_lib.Normalization
   box: tuple[tuple[float, ...], tuple[float, ...]]  # observed region in normalised coordinates
   seconds: float
+  start: int = 0  # the step this call began at (> 0 when resumed)
+  skipped: int = 0  # updates the divergence guard skipped in the whole run
 
 
 def observed_box(scene: scene_lib.Scene, norm: scene_lib.Normalization, margin: float):
@@ -246,51 +255,91 @@ def observed_box(scene: scene_lib.Scene, norm: scene_lib.Normalization, margin: 
   return tuple(np.maximum(lo - pad, -1.0).tolist()), tuple(np.minimum(hi + pad, 1.0).tolist())
 
 
+def _metrics_before(run_dir: Path, step: int) -> list[str]:
+  """The metrics.jsonl lines of steps before `step`: a resumed run logs the later ones again."""
+  path = run_dir / METRICS
+  if not path.is_file():
+    return []
+  return [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] < step]
+
+
+def _diverged(run_dir: Path | None, cfg: Config, step: int) -> UserError:
+  where = run_dir if run_dir is not None else "training"
+  kept = checkpoint.list_steps(run_dir) if run_dir is not None else []
+  last = f"the last good checkpoint is step {kept[-1]}" if kept else "no checkpoint was written"
+  return UserError(f"{where}: diverged: {cfg.train.max_skipped_in_a_row} steps in a row had a "
+                   f"non-finite gradient or update (stopped at step {step + 1}; {last}); lower the "
+                   "learning rate or check the data")
+
+
 def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, progress: bool = True,
-          meta: dict | None = None) -> RunResult:
-  """Trains on a posed scene; with run_dir, writes config.json, metrics.jsonl, checkpoints, mesh."""
+          meta: dict | None = None, resume: bool = False) -> RunResult:
+  """Trains on a posed scene; with run_dir, writes config.json, metrics.jsonl, checkpoints.
+
+  resume: continue from run_dir's newest checkpoint (from scratch when it has none); the result
+  is the same as that of an uninterrupted run, metrics.jsonl included. Non-finite steps are skipped
+  (ofjax.guard); `max_skipped_in_a_row` of them in a row raise a UserError, leaving the
+  checkpoints written so far.
+  """
   from tqdm import tqdm
 
-  norm = scene.normalization or scene_lib.compute_normalization(scene, cfg.train.box_margin)
-  box = observed_box(scene, norm, cfg.train.box_margin)
+  tc = cfg.train
+  norm = scene.normalization or scene_lib.compute_normalization(scene, tc.box_margin)
+  box = observed_box(scene, norm, tc.box_margin)
   data = prepare_data(scene, norm)
   optimizer = make_optimizer(cfg)
-  params = fields.init_params(jax.random.PRNGKey(cfg.train.seed), cfg)
+  params = fields.init_params(jax.random.PRNGKey(tc.seed), cfg)
   opt_state = optimizer.init(params)
+  start = 0
+  if resume and run_dir is not None:
+    state = checkpoint.restore(run_dir, params, opt_state)
+    if state is not None:
+      start, params, opt_state = state[0], *jax.device_put(state[1:])
   step_fn = create_train_step(cfg, optimizer)
 
-  metrics_file = None
+  lines: list[str] = []
   if run_dir is not None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    fileio.write_json(run_dir / "config.json", {
-        "config": cfg.to_dict(), "units": scene.units,
-        "normalization": dataclasses.asdict(norm), "observed_box": box,
-        "jax": jax.__version__, "backend": jax.default_backend(), **(meta or {})})
-    metrics_file = open(run_dir / "metrics.jsonl", "w")
+    if resume:
+      lines = _metrics_before(run_dir, start)
+    else:
+      fileio.write_json(run_dir / "config.json", {
+          "config": cfg.to_dict(), "units": scene.units,
+          "normalization": dataclasses.asdict(norm), "observed_box": box,
+          "jax": jax.__version__, "backend": jax.default_backend(), **(meta or {})})
+  # time_s continues across resumes: it is the training time, not the wall clock.
+  t_before = json.loads(lines[-1])["time_s"] if lines else 0.0
 
   t0 = time.time()
-  bar = tqdm(total=cfg.train.steps, disable=not progress, unit="it", dynamic_ncols=True,
+  bar = tqdm(total=tc.steps, initial=start, disable=not progress, unit="it", dynamic_ncols=True,
              desc="train")
   try:
-    for step in range(cfg.train.steps):
+    for step in range(start, tc.steps):
       params, opt_state, logs = step_fn(params, opt_state, data, jnp.int32(step))
-      last = step == cfg.train.steps - 1
-      if step % cfg.train.log_every == 0 or last:
-        logs = {k: float(v) for k, v in logs.items()}  # the only host sync in the loop
+      last = step == tc.steps - 1
+      log = step % tc.log_every == 0 or last
+      save = run_dir is not None and ((step + 1) % tc.checkpoint_every == 0 or last)
+      # The guard's counters are read at every log, checkpoint and max_skipped_in_a_row steps:
+      # a diverged run stops within that many steps, and no checkpoint follows a diverged step.
+      if log or save or (step + 1) % tc.max_skipped_in_a_row == 0:
+        counts = guard.stats(opt_state)
+        if counts["worst"] >= tc.max_skipped_in_a_row:
+          raise _diverged(run_dir, cfg, step)
+      if log:
+        logs = {k: float(v) for k, v in logs.items()}  # the only other host sync in the loop
         bar.set_postfix(loss=f"{logs['loss/total']:.4g}", wli=f"{logs['loss/wli']:.2e}",
                         color=f"{logs['loss/color']:.2e}", refresh=False)
-        if metrics_file:
-          metrics_file.write(json.dumps({"step": step, "time_s": time.time() - t0, **logs}) + "\n")
-          metrics_file.flush()
-      if run_dir is not None and ((step + 1) % cfg.train.checkpoint_every == 0 or last):
-        checkpoint.save(run_dir, step + 1, params, opt_state, cfg.train.keep_checkpoints)
+        if run_dir is not None:
+          lines.append(json.dumps({"step": step, "time_s": t_before + time.time() - t0, **logs,
+                                   "skipped": counts["skipped"]}))
+          fileio.write_text(run_dir / METRICS, "\n".join(lines) + "\n")
+      if save:
+        checkpoint.save(run_dir, step + 1, params, opt_state, tc.keep_checkpoints)
       bar.update(1)
   finally:
     bar.close()
-    if metrics_file:
-      metrics_file.close()
   jax.block_until_ready(params)
-  return RunResult(params, cfg, norm, box, time.time() - t0)
+  return RunResult(params, cfg, norm, box, time.time() - t0, start,
+                   guard.stats(opt_state)["skipped"])
 
 
 # ------------------------------------------------------------------------------------------- CLI
@@ -315,6 +364,16 @@ def build_parser() -> argparse.ArgumentParser:
                  help="micrometres per unit of an OpticFusion-layout scene")
   p.add_argument("--layout", choices=["native", "opticfusion", "raw"], help="force the data layout")
   p.add_argument("--mesh-resolution", type=int, help="marching-cubes resolution of mesh.ply")
+  p.add_argument("--checkpoint-every", type=int,
+                 help="write a checkpoint every N steps (default: the preset's)")
+  p.add_argument("--keep-checkpoints", type=int, help="keep the newest K checkpoints (default: "
+                 "the preset's)")
+  p.add_argument("--log-every", type=int, help="a metrics.jsonl line every N steps (default: the "
+                 "preset's)")
+  p.add_argument("--max-skipped", type=int, help="stop after this many non-finite steps in a row "
+                 "(default: the preset's)")
+  p.add_argument("--resume", action="store_true",
+                 help="continue the run in --out from its newest checkpoint")
   p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
   p.add_argument("--quiet", action="store_true", help="no progress bar")
   return p
@@ -325,11 +384,15 @@ def config_from_args(args) -> Config:
   if not mods or any(m not in MODALITIES for m in mods):
     raise UserError(f"--modalities {args.modalities!r}: use wli,om | wli | om")
   train_over: dict[str, Any] = {"modalities": mods, "seed": args.seed}
-  for name, value in (("steps", args.steps), ("n_rays", args.rays),
-                      ("mesh_resolution", args.mesh_resolution)):
+  for option, name in (("steps", "steps"), ("rays", "n_rays"),
+                       ("mesh_resolution", "mesh_resolution"),
+                       ("checkpoint_every", "checkpoint_every"),
+                       ("keep_checkpoints", "keep_checkpoints"), ("log_every", "log_every"),
+                       ("max_skipped", "max_skipped_in_a_row")):
+    value = getattr(args, option)
     if value is not None:
       if value <= 0:
-        raise UserError(f"--{name.replace('n_', '').replace('_', '-')} {value}: must be positive")
+        raise UserError(f"--{option.replace('_', '-')} {value}: must be a positive integer")
       train_over[name] = value
   over: dict[str, dict[str, Any]] = {"train": train_over}
   if args.no_residual:
@@ -343,6 +406,51 @@ def config_from_args(args) -> Config:
                                   cfg.optim, warmup_steps=min(cfg.optim.warmup_steps,
                                                               max(args.steps // 10, 1))))
   return cfg
+
+
+def resume_config(run_dir: Path, cfg: Config) -> Config:
+  """The config to resume run_dir with: the stored one, with cfg's KEEPING_FIELDS.
+
+  Any other difference between cfg (from the command line) and the stored config would make the
+  resumed run a different run, so it is a UserError naming the fields.
+  """
+  path = run_dir / "config.json"
+  if not path.is_file():
+    raise UserError(f"{path}: not found, so there is no run to resume; drop --resume")
+  try:
+    stored = Config.from_dict(json.loads(path.read_text())["config"])
+  except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+    raise UserError(f"{path}: not an ofjax run config; start a new run with another --out or "
+                    "--overwrite") from None
+  new, old = cfg.to_dict(), stored.to_dict()
+  differ = [f"{comp}.{k}" for comp, part in new.items() if isinstance(part, dict)
+            for k, v in part.items() if old[comp].get(k) != v and k not in KEEPING_FIELDS]
+  differ += ["preset"] if new["preset"] != old["preset"] else []
+  if differ:
+    raise UserError(f"--resume: {', '.join(differ)} differ from {path}; resume with the run's own "
+                    "options, or start a new run with another --out")
+  keep = {k: getattr(cfg.train, k) for k in KEEPING_FIELDS}
+  return dataclasses.replace(stored, train=dataclasses.replace(stored.train, **keep))
+
+
+def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
+  """Refuses to clobber an existing run unless told; --overwrite drops its old checkpoints.
+
+  The old mesh and config stay until the new ones replace them (atomically).
+  """
+  if resume and overwrite:
+    raise UserError("--resume and --overwrite: choose one")
+  if run_dir.exists() and not run_dir.is_dir():
+    raise UserError(f"{run_dir}: is a file; give a directory as --out")
+  if resume:
+    return
+  if run_dir.is_dir() and any(run_dir.iterdir()):
+    if not overwrite:
+      raise UserError(f"{run_dir}: not empty (a run already exists there); choose another --out, "
+                      "or pass --resume to continue it or --overwrite to replace it")
+    shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
+    (run_dir / METRICS).unlink(missing_ok=True)
+  run_dir.mkdir(parents=True, exist_ok=True)
 
 
 def load_scene_for_training(args) -> scene_lib.Scene:
@@ -361,16 +469,19 @@ def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
   cfg = config_from_args(args)
   run_dir = Path(args.out)
-  if (run_dir / "config.json").exists() and not args.overwrite:
-    raise UserError(f"{run_dir}: a run already exists there; choose another --out or pass "
-                    "--overwrite")
+  prepare_run_dir(run_dir, args.resume, args.overwrite)
+  if args.resume:
+    cfg = resume_config(run_dir, cfg)
   scene = load_scene_for_training(args)
   result = train(scene, cfg, run_dir, progress=not args.quiet,
-                 meta={"data": str(Path(args.data).resolve()), "poses": args.poses})
+                 meta={"data": str(Path(args.data).resolve()), "poses": args.poses},
+                 resume=args.resume)
   from ofjax import export
   mesh_path = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
                                 resolution=cfg.train.mesh_resolution, units=scene.units)
-  print(f"ofjax: trained {cfg.train.steps} steps in {result.seconds:.1f} s; mesh: {mesh_path}")
+  resumed = f" (resumed at step {result.start})" if result.start else ""
+  print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
+        f"{result.skipped} skipped; mesh: {mesh_path}")
   return 0
 
 
