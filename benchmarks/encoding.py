@@ -1,6 +1,7 @@
 """Throughput of the hash encoding: samples per second of each way to use it, as a table.
 
-Rows (each jit-compiled, one call = `--points` samples, warm-up call excluded, median of repeats):
+Rows (each jit-compiled, one call = `--points` samples, warm-up call excluded, median of repeats;
+samples/s is from wall time, `cpu ms` is the process's CPU time per call, summed over threads):
   encode                 features only
   encode_with_jacobian   features and the analytic d feats / dx
   vg explicit jac        value_and_grad w.r.t. the tables of a loss using both feats and jac,
@@ -8,7 +9,8 @@ Rows (each jit-compiled, one call = `--points` samples, warm-up call excluded, m
   vg grad(encode)        the same loss with d sdf / dx from jax.grad of `encode` (its custom_jvp)
   vg naive autodiff      the same loss with d sdf / dx from jax.grad through the gather (no
                          custom_jvp): the nested-autodiff baseline
-The loss stands in for the SDF head: sdf = feats . a, loss = mean(sdf) + mean((|d sdf/dx| - 1)^2).
+The loss stands in for the SDF head (a per-point non-linearity, then a linear read-out):
+sdf = tanh(feats) . a, loss = mean(sdf) + mean((|d sdf/dx| - 1)^2).
 
   python benchmarks/encoding.py [--points 65536] [--log2-table-sizes 16 19] [--repeats 5]
 """
@@ -40,11 +42,13 @@ def make_functions(cfg: HashConfig) -> dict[str, callable]:
 
   def explicit(tables, x, a):
     feats, jac = encoding.encode_with_jacobian(tables, x, cfg)
-    return _loss_from_grad(feats @ a, jnp.einsum("nkd,k->nd", jac, a))
+    h = jnp.tanh(feats)
+    # Chain rule by hand: d sdf / dx = (a * tanh'(feats)) . d feats / dx.
+    return _loss_from_grad(h @ a, jnp.einsum("nk,nkd->nd", a * (1.0 - h * h), jac))
 
   def through(encode_fn):
     def loss(tables, x, a):
-      sdf = lambda p: encode_fn(tables, p, cfg) @ a
+      sdf = lambda p: jnp.tanh(encode_fn(tables, p, cfg)) @ a
       return _loss_from_grad(sdf(x), jax.vmap(jax.grad(sdf))(x))
     return loss
 
@@ -57,15 +61,20 @@ def make_functions(cfg: HashConfig) -> dict[str, callable]:
   }
 
 
-def time_call(fn, args, repeats: int) -> float:
-  """Median seconds per call, after one warm-up (compilation) call."""
+def time_call(fn, args, repeats: int) -> tuple[float, float]:
+  """Median wall and CPU (all threads of this process) seconds per call, after a warm-up call.
+
+  On a shared machine the CPU time is the steadier figure: it does not count time spent waiting
+  for cores that other processes hold.
+  """
   jax.block_until_ready(fn(*args))
-  times = []
+  wall, cpu = [], []
   for _ in range(repeats):
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     jax.block_until_ready(fn(*args))
-    times.append(time.perf_counter() - start)
-  return float(np.median(times))
+    wall.append(time.perf_counter() - start)
+    cpu.append(time.process_time() - start_cpu)
+  return float(np.median(wall)), float(np.median(cpu))
 
 
 def machine() -> str:
@@ -85,7 +94,8 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   print(machine())
   print(f"{args.points} points per call, median of {args.repeats} calls, warm-up excluded")
-  print(f"{'log2 T':>6}  {'function':<22} {'ms/call':>9} {'samples/s':>12}")
+  print(f"load average {os.getloadavg()[0]:.1f} at start")
+  print(f"{'log2 T':>6}  {'function':<22} {'wall ms':>9} {'samples/s':>12} {'cpu ms':>9}")
   rng = np.random.default_rng(0)
   x = jnp.asarray(rng.uniform(-1.0, 1.0, (args.points, 3)), jnp.float32)
   for log2_t in args.log2_table_sizes:
@@ -95,8 +105,9 @@ def main(argv=None) -> int:
     for name, fn in make_functions(cfg).items():
       if args.only and name not in args.only:
         continue
-      sec = time_call(fn, (tables, x, a), args.repeats)
-      print(f"{log2_t:>6}  {name:<22} {sec * 1e3:>9.1f} {args.points / sec:>12,.0f}", flush=True)
+      wall, cpu = time_call(fn, (tables, x, a), args.repeats)
+      print(f"{log2_t:>6}  {name:<22} {wall * 1e3:>9.1f} {args.points / wall:>12,.0f} "
+            f"{cpu * 1e3:>9.1f}", flush=True)
   return 0
 
 

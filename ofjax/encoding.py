@@ -19,9 +19,12 @@ Conventions (L levels, F features per level, T = 2**log2_table_size entries per 
   jac       [..., L*F, 3] = d feats / d x in [-1, 1] coordinates, from the derivative of the
             trilinear weights (the gathered table entries do not depend on x).
 
-All levels and all 8 corners are gathered by one advanced index into the table flattened to
-[L*T, F] (per-level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one scatter-add,
-shared by the feature and the Jacobian cotangents.
+All levels, corners and features are gathered by one advanced index into the table flattened to
+[L*T*F] scalars (level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one
+scatter-add, shared by the feature and the Jacobian cotangents. Layout (measured on XLA CPU,
+benchmarks/encoding.py): the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit
+adds, so features and Jacobian come out point-major with no transpose; reductions over a
+non-minor axis and transposes fused into the interpolation were each several times slower.
 """
 
 from __future__ import annotations
@@ -64,60 +67,42 @@ def init_tables(key: jax.Array, cfg: HashConfig) -> jax.Array:
 
 
 def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
-  """Gathers the 8 corners of every level, in a components-first layout that XLA vectorises.
+  """Gathers the 8 corners of every level.
 
   Args:
     tables: [L, T, F] table entries.
     x: [N, 3] points in [-1, 1]^3.
   Returns:
-    vals: [8, L, F, N] table entries at the corners.
-    frac: [3, L, N] trilinear fractions in [0, 1).
+    vals: [8, N, L, F] table entries at the corners.
+    frac: [3, N, L] trilinear fractions in [0, 1).
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
   n_levels, table_size, n_features = tables.shape
   u = (x.T + 1.0) * 0.5  # [3, N]
   inside = ((u >= 0.0) & (u <= 1.0)).astype(x.dtype)
-  scale = jnp.asarray(level_scales(cfg), x.dtype)[:, None]  # [L, 1]
-  pos = jnp.clip(u, 0.0, 1.0)[:, None, :] * scale + 0.5  # [3, L, N]
+  scale = jnp.asarray(level_scales(cfg), x.dtype)  # [L]
+  pos = jnp.clip(u, 0.0, 1.0)[:, :, None] * scale + 0.5  # [3, N, L]
   cell = jnp.floor(pos)
   frac = pos - cell
   lower = cell.astype(jnp.uint32)
-  # Per axis and level, the corner coordinate is multiplied by the dense stride (1, side, side^2)
-  # or the hash prime; dense levels add the three terms, hashed levels xor them. uint32 products
-  # wrap mod 2^32 exactly as instant-ngp's, and T is a power of two, so `mod T` is a bit mask
-  # (dense sums are already below T).
   dense = level_is_dense(cfg)  # [L] static
   strides = level_resolutions(cfg)[None, :] ** np.arange(3)[:, None]  # [3, L]
   mult = np.where(dense[None, :], strides, np.array(HASH_PRIMES)[:, None]).astype(np.uint32)
-  terms = (lower * mult[..., None], (lower + np.uint32(1)) * mult[..., None])  # 2 x [3, L, N]
-  dense_col = jnp.asarray(dense)[:, None]
+  terms = (lower * mult[:, None, :], (lower + np.uint32(1)) * mult[:, None, :])  # 2 x [3, N, L]
   index = []
   for bits in _CORNERS:
     tx, ty, tz = (terms[b][d] for d, b in enumerate(bits))
-    index.append(jnp.where(dense_col, tx + ty + tz, tx ^ ty ^ tz) & np.uint32(table_size - 1))
-  level_offset = (np.arange(n_levels, dtype=np.uint32) * np.uint32(table_size))[:, None]
-  entry = jnp.stack(index) + level_offset  # [8, L, N] row of the [L*T, F] table
-  # One scalar gather from the flat [L*T*F] table; its transpose is one scatter-add.
-  feature = np.arange(n_features, dtype=np.uint32)[:, None]
-  flat_index = (entry[:, :, None, :] * np.uint32(n_features) + feature).astype(jnp.int32)
+    index.append(jnp.where(dense, tx + ty + tz, tx ^ ty ^ tz) & np.uint32(table_size - 1))
+  level_offset = np.arange(n_levels, dtype=np.uint32) * np.uint32(table_size)
+  entry = jnp.stack(index) + level_offset  # [8, N, L] row of the [L*T, F] table
+  feature = np.arange(n_features, dtype=np.uint32)
+  flat_index = (entry[..., None] * np.uint32(n_features) + feature).astype(jnp.int32)
   vals = jnp.asarray(tables).reshape(-1).at[flat_index].get(mode="promise_in_bounds")
   return vals, frac, inside
 
 
 def _weights(frac: jax.Array) -> tuple[list[jax.Array], list[list[jax.Array]]]:
-  """Trilinear weights and their derivatives, as Python lists of [L, N] arrays.
-
-  XLA's CPU backend reduces over a non-minor axis (such as the 8 corners of [8, L, N]) an order
-  of magnitude slower than it adds 8 separate arrays, and lists let every product fuse into its
-  consumer instead of materialising [3, 8, L, N].
-
-  Args:
-    frac: [3, L, N] fractions in the cell.
-  Returns:
-    w: 8 x [L, N], the weight of each corner.
-    dw: 8 x 3 x [L, N], d w / d frac along each axis.
-  """
-  # Per-axis factor: 1 - frac for the lower corner, frac for the upper one; derivative -1 or +1.
+  """frac: [3, N, L] -> w: 8 x [N, L] corner weights, dw: 8 x 3 x [N, L] their d / d frac."""
   factor = (1.0 - frac, frac)
   w, dw = [], []
   for bits in _CORNERS:
@@ -129,16 +114,15 @@ def _weights(frac: jax.Array) -> tuple[list[jax.Array], list[list[jax.Array]]]:
 
 
 def _interpolate(weights: list[jax.Array], vals: jax.Array) -> jax.Array:
-  """weights: 8 x [L, N]; vals: [8, L, F, N] -> [L, F, N], the weighted sum over the corners."""
-  return sum(wc[:, None] * vc for wc, vc in zip(weights, vals))
+  """weights: 8 x [N, L]; vals: [8, N, L, F] -> [N, L, F], the weighted sum over the corners."""
+  return sum(wc[..., None] * vc for wc, vc in zip(weights, vals))
 
 
 def _encode_plain(tables: jax.Array, x: jax.Array, cfg: HashConfig) -> jax.Array:
   """The encoding as plain JAX (what `encode` computes, without its custom derivative)."""
   vals, frac, _ = _gather(tables, x.reshape(-1, 3), cfg)
   w, _ = _weights(frac)
-  n_points = vals.shape[-1]
-  return _interpolate(w, vals).reshape(-1, n_points).T.reshape(*x.shape[:-1], -1)
+  return _interpolate(w, vals).reshape(*x.shape[:-1], -1)
 
 
 def encode_with_jacobian(tables: jax.Array, x: jax.Array,
@@ -156,14 +140,12 @@ def encode_with_jacobian(tables: jax.Array, x: jax.Array,
   vals, frac, inside = _gather(tables, x.reshape(-1, 3), cfg)
   w, dw = _weights(frac)
   # d frac / d x = scale_l / 2 inside the box, 0 along clipped axes.
-  dfrac_dx = jnp.asarray(level_scales(cfg) * 0.5, x.dtype)[:, None] * inside[:, None, :]
-  feats = _interpolate(w, vals)  # [L, F, N]
-  jac = jnp.stack([_interpolate([dwc[d] for dwc in dw], vals) * dfrac_dx[d][:, None]
-                   for d in range(3)], axis=2)  # [L, F, 3, N]
-  # Components-first to points-first by 2-D transposes, which XLA does fast.
-  n_points, n_out = vals.shape[-1], tables.shape[0] * tables.shape[2]
-  return (feats.reshape(n_out, n_points).T.reshape(*x.shape[:-1], n_out),
-          jac.reshape(n_out * 3, n_points).T.reshape(*x.shape[:-1], n_out, 3))
+  dfrac_dx = inside[:, :, None] * jnp.asarray(level_scales(cfg) * 0.5, x.dtype)  # [3, N, L]
+  feats = _interpolate(w, vals)  # [N, L, F]
+  jac = jnp.stack([_interpolate([dwc[d] for dwc in dw], vals) * dfrac_dx[d][..., None]
+                   for d in range(3)], axis=-1)  # [N, L, F, 3]
+  n_out = tables.shape[0] * tables.shape[2]
+  return feats.reshape(*x.shape[:-1], n_out), jac.reshape(*x.shape[:-1], n_out, 3)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
