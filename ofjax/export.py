@@ -99,6 +99,21 @@ def write_mesh(mesh: trimesh.Trimesh, path: Path, units: str = "um") -> Path:
   return path
 
 
+def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,
+                 norm: scene_lib.Normalization, min_component: float = 0.05) -> trimesh.Trimesh:
+  """Zero level set of sdf_fn over [lo, hi] (normalised), coloured by color_fn, mapped to um.
+
+  sdf_fn: [N, 3] -> [N]; color_fn: [N, 3] -> [N, 3] in [0, 1]; both on normalised points.
+  """
+  mesh = drop_small_components(marching_cubes(sdf_fn, lo, hi, resolution), min_component)
+  if len(mesh.vertices):
+    rgb = evaluate_chunked(color_fn, np.asarray(mesh.vertices))
+    mesh.visual.vertex_colors = np.concatenate(
+        [np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], 1).astype(np.uint8)
+  mesh.vertices = norm.to_um(np.asarray(mesh.vertices))
+  return mesh
+
+
 def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolution: int,
                  min_component: float = 0.05) -> trimesh.Trimesh:
   """The trained SDF's surface in um with vertex colours from the global colour network."""
@@ -106,16 +121,8 @@ def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolu
   # embeds nor constant-folds the tables.
   sdf_jit = jax.jit(fields.sdf_value, static_argnums=2)
   color_jit = jax.jit(fields.global_color, static_argnums=2)
-  sdf_fn = lambda x: sdf_jit(params, x, cfg)
-  color_fn = lambda x: color_jit(params, x, cfg)
-  mesh = marching_cubes(sdf_fn, box[0], box[1], resolution)
-  mesh = drop_small_components(mesh, min_component)
-  if len(mesh.vertices):
-    rgb = evaluate_chunked(color_fn, np.asarray(mesh.vertices))
-    mesh.visual.vertex_colors = np.concatenate(
-        [np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], 1).astype(np.uint8)
-  mesh.vertices = norm.to_um(np.asarray(mesh.vertices))
-  return mesh
+  return surface_mesh(lambda x: sdf_jit(params, x, cfg), lambda x: color_jit(params, x, cfg),
+                      box[0], box[1], resolution, norm, min_component)
 
 
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,

@@ -1,0 +1,90 @@
+"""The SDF / colour fields: analytic normals vs finite differences, SH basis, ranges, init."""
+
+import dataclasses
+
+import chex
+import jax
+from jax import enable_x64
+import jax.numpy as jnp
+import numpy as np
+
+from ofjax import fields
+from ofjax.config import Config, HashConfig, ModelConfig
+
+CFG = Config(hash=HashConfig(n_levels=6, log2_table_size=12, base_resolution=4))
+
+
+def _params_with_live_encoding(seed=0):
+  """Params whose hash tables and encoding weights are non-trivial (the init zeroes them)."""
+  p = fields.init_params(jax.random.PRNGKey(seed), CFG)
+  k1, k2 = jax.random.split(jax.random.PRNGKey(seed + 1))
+  p["tables"] = jax.random.uniform(k1, p["tables"].shape, minval=-0.5, maxval=0.5)
+  k = p["sdf"]["Dense_0"]["kernel"]
+  p["sdf"]["Dense_0"]["kernel"] = k + 0.3 * jax.random.normal(k2, k.shape)
+  return p
+
+
+def test_geometry_gradient_matches_finite_differences():
+  p = _params_with_live_encoding()
+  x = np.random.default_rng(0).uniform(-0.8, 0.8, (64, 3)).astype(np.float32)
+  sdf, grad, feat = fields.geometry(p, jnp.asarray(x), CFG)
+  chex.assert_shape([sdf, grad, feat], [(64,), (64, 3), (64, CFG.model.feature_dim)])
+  chex.assert_type([sdf, grad], jnp.float32)
+  with enable_x64():
+    p64 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), p)
+    h = 1e-6
+    fd = np.zeros((64, 3))
+    for j in range(3):
+      e = np.zeros(3)
+      e[j] = h
+      fd[:, j] = (np.asarray(fields.sdf_value(p64, jnp.asarray(x + e, jnp.float64), CFG)) -
+                  np.asarray(fields.sdf_value(p64, jnp.asarray(x - e, jnp.float64), CFG))) / (2 * h)
+  # A few points may sit within h of a cell face, where the trilinear gradient jumps.
+  close = np.all(np.abs(np.asarray(grad) - fd) < 1e-3 * (1 + np.abs(fd)), axis=1)
+  assert close.mean() > 0.95, np.abs(np.asarray(grad) - fd).max()
+  np.testing.assert_allclose(np.asarray(sdf), np.asarray(fields.sdf_value(p, jnp.asarray(x), CFG)),
+                             atol=1e-5)
+
+
+def test_sphere_initialisation():
+  p = fields.init_params(jax.random.PRNGKey(0), CFG)
+  dirs = np.random.default_rng(1).normal(size=(500, 3))
+  dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+  inside = fields.sdf_value(p, jnp.asarray(0.1 * dirs, jnp.float32), CFG)
+  outside = fields.sdf_value(p, jnp.asarray(0.95 * dirs, jnp.float32), CFG)
+  assert float(inside.max()) < 0 < float(outside.min())
+
+
+def test_spherical_harmonics_are_orthonormal():
+  # Fibonacci-sphere quadrature of <Y_i, Y_j> over the unit sphere: 4 pi mean(Y_i Y_j) = delta_ij.
+  n = 40000
+  k = np.arange(n) + 0.5
+  z = 1 - 2 * k / n
+  phi = np.pi * (1 + 5**0.5) * k
+  r = np.sqrt(1 - z**2)
+  v = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+  y = np.asarray(fields.sh_encode(jnp.asarray(v, jnp.float32), 4), np.float64)
+  chex.assert_shape(y, (n, 16))
+  gram = 4 * np.pi * (y.T @ y) / n
+  np.testing.assert_allclose(gram, np.eye(16), atol=2e-3)
+
+
+def test_colour_ranges_and_residual_switch():
+  p = _params_with_live_encoding()
+  rng = np.random.default_rng(2)
+  x = jnp.asarray(rng.uniform(-1, 1, (100, 3)), jnp.float32)
+  n = fields.unit(jnp.asarray(rng.normal(size=(100, 3)), jnp.float32))
+  v = fields.unit(jnp.asarray(rng.normal(size=(100, 3)), jnp.float32))
+  f = jnp.asarray(rng.normal(size=(100, CFG.model.feature_dim)), jnp.float32)
+  c_global, c_res = fields.colors(p, x, n, f, v, CFG)
+  assert float(c_global.min()) > 0 and float(c_global.max()) < 1
+  assert float(c_res.min()) > -1 and float(c_res.max()) < 1 and float(jnp.abs(c_res).max()) > 0
+  no_res = dataclasses.replace(CFG, model=ModelConfig(residual=False))
+  c_global2, c_res2 = fields.colors(p, x, n, f, v, no_res)
+  chex.assert_trees_all_close(c_global2, c_global)
+  assert float(jnp.abs(c_res2).max()) == 0.0
+
+
+def test_safe_norm_has_finite_gradient_at_zero():
+  g = jax.grad(lambda v: fields.safe_norm(v).sum())(jnp.zeros((2, 3)))
+  assert bool(jnp.all(jnp.isfinite(g)))
