@@ -302,6 +302,9 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
                       "file") from None
     if depth.ndim != 2:
       raise UserError(f"{f}: depth must be a 2-D map, got shape {depth.shape}; replace the file")
+    if not np.isfinite(depth).any():
+      raise UserError(f"{f}: every pixel is a void; replace the file or drop the scan from "
+                      "scene.json")
     wli.append(WLIScan(m["name"], depth, tuple(m["pixel_size"]), prior=m.get("prior")))
   om = []
   for m in meta["om"]:

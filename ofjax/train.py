@@ -302,6 +302,10 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
     if resume:
       lines = _metrics_before(run_dir, start)
     else:
+      # A fresh run replaces an earlier one's checkpoints and log; its mesh stays until the new
+      # one is written over it (atomically).
+      shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
+      (run_dir / METRICS).unlink(missing_ok=True)
       fileio.write_json(run_dir / "config.json", {
           "config": cfg.to_dict(), "units": scene.units,
           "normalization": dataclasses.asdict(norm), "observed_box": box,
@@ -433,24 +437,17 @@ def resume_config(run_dir: Path, cfg: Config) -> Config:
   return dataclasses.replace(stored, train=dataclasses.replace(stored.train, **keep))
 
 
-def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
-  """Refuses to clobber an existing run unless told; --overwrite drops its old checkpoints.
-
-  The old mesh and config stay until the new ones replace them (atomically).
-  """
+def check_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
+  """Refuses to clobber an existing run unless told (writes nothing)."""
   if resume and overwrite:
     raise UserError("--resume and --overwrite: choose one")
   if run_dir.exists() and not run_dir.is_dir():
     raise UserError(f"{run_dir}: is a file; give a directory as --out")
   if resume:
     return
-  if run_dir.is_dir() and any(run_dir.iterdir()):
-    if not overwrite:
-      raise UserError(f"{run_dir}: not empty (a run already exists there); choose another --out, "
-                      "or pass --resume to continue it or --overwrite to replace it")
-    shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
-    (run_dir / METRICS).unlink(missing_ok=True)
-  run_dir.mkdir(parents=True, exist_ok=True)
+  if run_dir.is_dir() and any(run_dir.iterdir()) and not overwrite:
+    raise UserError(f"{run_dir}: not empty (a run already exists there); choose another --out, "
+                    "or pass --resume to continue it or --overwrite to replace it")
 
 
 def load_scene_for_training(args) -> scene_lib.Scene:
@@ -469,7 +466,7 @@ def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
   cfg = config_from_args(args)
   run_dir = Path(args.out)
-  prepare_run_dir(run_dir, args.resume, args.overwrite)
+  check_run_dir(run_dir, args.resume, args.overwrite)
   if args.resume:
     cfg = resume_config(run_dir, cfg)
   scene = load_scene_for_training(args)
