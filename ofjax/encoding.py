@@ -78,6 +78,9 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
   n_levels, table_size, n_features = tables.shape
+  if tables.size >= 2 ** 31:
+    raise ValueError(f"hash tables of {tables.size} entries exceed int32 gather indices; "
+                     "lower log2_table_size")
   u = (x.T + 1.0) * 0.5  # [3, N]
   inside = ((u >= 0.0) & (u <= 1.0)).astype(x.dtype)
   scale = jnp.asarray(level_scales(cfg), x.dtype)  # [L]
@@ -89,6 +92,8 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
   strides = level_resolutions(cfg)[None, :] ** np.arange(3)[:, None]  # [3, L]
   mult = np.where(dense[None, :], strides, np.array(HASH_PRIMES)[:, None]).astype(np.uint32)
   terms = (lower * mult[:, None, :], (lower + np.uint32(1)) * mult[:, None, :])  # 2 x [3, N, L]
+  # The mask also keeps every index in range for any input (even NaN), which the unchecked
+  # ("promise_in_bounds") gather below relies on.
   index = []
   for bits in _CORNERS:
     tx, ty, tz = (terms[b][d] for d, b in enumerate(bits))
@@ -122,7 +127,7 @@ def _encode_plain(tables: jax.Array, x: jax.Array, cfg: HashConfig) -> jax.Array
   """The encoding as plain JAX (what `encode` computes, without its custom derivative)."""
   vals, frac, _ = _gather(tables, x.reshape(-1, 3), cfg)
   w, _ = _weights(frac)
-  return _interpolate(w, vals).reshape(*x.shape[:-1], -1)
+  return _interpolate(w, vals).reshape(*x.shape[:-1], tables.shape[0] * tables.shape[2])
 
 
 def encode_with_jacobian(tables: jax.Array, x: jax.Array,

@@ -180,6 +180,16 @@ def test_outside_box_is_clipped():
   assert np.all(np.isfinite(np.asarray(feats)))
 
 
+def test_batch_shapes_and_nan_inputs():
+  tables = jnp.asarray(random_tables(16, SMALL, np.float32))
+  chex.assert_shape(encoding.encode(tables, jnp.zeros(3), SMALL), (8,))
+  chex.assert_shape(encoding.encode_with_jacobian(tables, jnp.zeros((2, 0, 3)), SMALL)[1],
+                    (2, 0, 8, 3))
+  # A NaN coordinate gives NaN features for that point only (indices stay in range).
+  feats = encoding.encode(tables, jnp.array([[np.nan, 0.0, 0.0], [0.5, 0.0, 0.0]]), SMALL)
+  assert np.all(np.isnan(feats[0])) and np.all(np.isfinite(feats[1]))
+
+
 def test_custom_jvp_matches_analytic_jacobian():
   x = interior_points(np.random.default_rng(10), 6, SMALL).astype(np.float32)
   tables = jnp.asarray(random_tables(11, SMALL, np.float32))
