@@ -22,6 +22,7 @@ import os
 import platform
 import sys
 import time
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +38,7 @@ def _loss_from_grad(sdf: jax.Array, grad_sdf: jax.Array) -> jax.Array:
   return jnp.mean(sdf) + jnp.mean((jnp.linalg.norm(grad_sdf, axis=-1) - 1.0) ** 2)
 
 
-def make_functions(cfg: HashConfig) -> dict[str, callable]:
+def make_functions(cfg: HashConfig) -> dict[str, Callable]:
   """The benchmarked functions of (tables, x, a), each jit-compiled."""
 
   def explicit(tables, x, a):

@@ -88,12 +88,15 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
   cell = jnp.floor(pos)
   frac = pos - cell
   lower = cell.astype(jnp.uint32)
+  # Per axis and level, a corner coordinate is multiplied by the dense stride (1, side, side^2) or
+  # by the hash prime; dense levels add the three terms, hashed levels xor them. uint32 products
+  # wrap mod 2^32 as instant-ngp's do, and T is a power of two, so `mod T` is a bit mask (dense
+  # sums are already below T). The mask also keeps every index in range for any input (even
+  # NaN), which the unchecked ("promise_in_bounds") gather below relies on.
   dense = level_is_dense(cfg)  # [L] static
   strides = level_resolutions(cfg)[None, :] ** np.arange(3)[:, None]  # [3, L]
   mult = np.where(dense[None, :], strides, np.array(HASH_PRIMES)[:, None]).astype(np.uint32)
   terms = (lower * mult[:, None, :], (lower + np.uint32(1)) * mult[:, None, :])  # 2 x [3, N, L]
-  # The mask also keeps every index in range for any input (even NaN), which the unchecked
-  # ("promise_in_bounds") gather below relies on.
   index = []
   for bits in _CORNERS:
     tx, ty, tz = (terms[b][d] for d, b in enumerate(bits))
@@ -108,6 +111,7 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
 
 def _weights(frac: jax.Array) -> tuple[list[jax.Array], list[list[jax.Array]]]:
   """frac: [3, N, L] -> w: 8 x [N, L] corner weights, dw: 8 x 3 x [N, L] their d / d frac."""
+  # Per-axis factor: 1 - frac for the lower corner, frac for the upper one; derivative -1 or +1.
   factor = (1.0 - frac, frac)
   w, dw = [], []
   for bits in _CORNERS:
