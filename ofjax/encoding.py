@@ -19,12 +19,12 @@ Conventions (L levels, F features per level, T = 2**log2_table_size entries per 
   jac       [..., L*F, 3] = d feats / d x in [-1, 1] coordinates, from the derivative of the
             trilinear weights (the gathered table entries do not depend on x).
 
-All levels, corners and features are gathered by one advanced index into the table flattened to
-[L*T*F] scalars (level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one
-scatter-add, shared by the feature and the Jacobian cotangents. Layout (measured on XLA CPU,
-benchmarks/encoding.py): the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit
-adds, so features and Jacobian come out point-major with no transpose; reductions over a
-non-minor axis and transposes fused into the interpolation were each several times slower.
+All levels and corners are gathered by one advanced index into the table viewed as [L*T, F] rows
+(level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one scatter-add, shared by
+the feature and the Jacobian cotangents. Layout (measured on XLA CPU, benchmarks/encoding.py):
+the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit adds, so features and
+Jacobian come out point-major with no transpose; reductions over a non-minor axis, transposes
+fused into the interpolation, and gathering F scalars instead of one F-row were each slower.
 """
 
 from __future__ import annotations
@@ -78,8 +78,8 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
   n_levels, table_size, n_features = tables.shape
-  if tables.size >= 2 ** 31:
-    raise ValueError(f"hash tables of {tables.size} entries exceed int32 gather indices; "
+  if n_levels * table_size >= 2 ** 31:
+    raise ValueError(f"{n_levels} x {table_size} hash-table rows exceed int32 gather indices; "
                      "lower log2_table_size")
   u = (x.T + 1.0) * 0.5  # [3, N]
   inside = ((u >= 0.0) & (u <= 1.0)).astype(x.dtype)
@@ -103,9 +103,8 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     index.append(jnp.where(dense, tx + ty + tz, tx ^ ty ^ tz) & np.uint32(table_size - 1))
   level_offset = np.arange(n_levels, dtype=np.uint32) * np.uint32(table_size)
   entry = jnp.stack(index) + level_offset  # [8, N, L] row of the [L*T, F] table
-  feature = np.arange(n_features, dtype=np.uint32)
-  flat_index = (entry[..., None] * np.uint32(n_features) + feature).astype(jnp.int32)
-  vals = jnp.asarray(tables).reshape(-1).at[flat_index].get(mode="promise_in_bounds")
+  rows = jnp.asarray(tables).reshape(n_levels * table_size, n_features)
+  vals = rows.at[entry.astype(jnp.int32)].get(mode="promise_in_bounds")
   return vals, frac, inside
 
 
