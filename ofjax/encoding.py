@@ -73,7 +73,7 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     tables: [L, T, F] table entries.
     x: [N, 3] points in [-1, 1]^3.
   Returns:
-    vals: [8, N, L, F] table entries at the corners.
+    vals: 8 x [N, L, F] table entries at the corners.
     frac: [3, N, L] trilinear fractions in [0, 1).
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
@@ -104,8 +104,10 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
   level_offset = np.arange(n_levels, dtype=np.uint32) * np.uint32(table_size)
   entry = jnp.stack(index) + level_offset  # [8, N, L] row of the [L*T, F] table
   rows = jnp.asarray(tables).reshape(n_levels * table_size, n_features)
-  vals = rows.at[entry.astype(jnp.int32)].get(mode="promise_in_bounds")
-  return vals, frac, inside
+  vals = rows.at[entry.astype(jnp.int32)].get(mode="promise_in_bounds")  # [8, N, L, F]
+  # One split, not 8 slices: the transpose of a split is one concatenate, whereas each slice's
+  # transpose is a zero-padded full-size array that XLA then sums (32 of them with the Jacobian).
+  return [jnp.squeeze(v, 0) for v in jnp.split(vals, 8)], frac, inside
 
 
 def _weights(frac: jax.Array) -> tuple[list[jax.Array], list[list[jax.Array]]]:
@@ -121,8 +123,8 @@ def _weights(frac: jax.Array) -> tuple[list[jax.Array], list[list[jax.Array]]]:
   return w, dw
 
 
-def _interpolate(weights: list[jax.Array], vals: jax.Array) -> jax.Array:
-  """weights: 8 x [N, L]; vals: [8, N, L, F] -> [N, L, F], the weighted sum over the corners."""
+def _interpolate(weights: list[jax.Array], vals: list[jax.Array]) -> jax.Array:
+  """weights: 8 x [N, L]; vals: 8 x [N, L, F] -> [N, L, F], the weighted sum over the corners."""
   return sum(wc[..., None] * vc for wc, vc in zip(weights, vals))
 
 
