@@ -172,7 +172,8 @@ def test_outside_box_is_clipped():
   tables = random_tables(9, SMALL)
   x = np.array([[1.5, 0.2, -0.3], [-3.0, -2.0, 7.0], [0.1, 0.2, 0.3]])
   with enable_x64():
-    feats, jac = encoding.encode_with_jacobian(jnp.asarray(tables), jnp.asarray(x), SMALL)
+    feats, jac = jax.jit(lambda t, p: encoding.encode_with_jacobian(t, p, SMALL))(
+        jnp.asarray(tables), jnp.asarray(x))
   np.testing.assert_allclose(feats, ref_encode(tables, np.clip(x, -1, 1), SMALL), atol=1e-9)
   np.testing.assert_array_equal(jac[0, :, 0], 0.0)
   assert np.all(np.asarray(jac[0, :, 1:]) != 0.0)
@@ -182,11 +183,12 @@ def test_outside_box_is_clipped():
 
 def test_batch_shapes_and_nan_inputs():
   tables = jnp.asarray(random_tables(16, SMALL, np.float32))
-  chex.assert_shape(encoding.encode(tables, jnp.zeros(3), SMALL), (8,))
-  chex.assert_shape(encoding.encode_with_jacobian(tables, jnp.zeros((2, 0, 3)), SMALL)[1],
-                    (2, 0, 8, 3))
+  enc = jax.jit(lambda p: encoding.encode(tables, p, SMALL))
+  chex.assert_shape(enc(jnp.zeros(3)), (8,))
+  chex.assert_shape(jax.jit(lambda p: encoding.encode_with_jacobian(tables, p, SMALL))(
+      jnp.zeros((2, 0, 3)))[1], (2, 0, 8, 3))
   # A NaN coordinate gives NaN features for that point only (indices stay in range).
-  feats = encoding.encode(tables, jnp.array([[np.nan, 0.0, 0.0], [0.5, 0.0, 0.0]]), SMALL)
+  feats = enc(jnp.array([[np.nan, 0.0, 0.0], [0.5, 0.0, 0.0]]))
   assert np.all(np.isnan(feats[0])) and np.all(np.isfinite(feats[1]))
 
 
