@@ -24,7 +24,6 @@ measured against their preset in one run, e.g.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
