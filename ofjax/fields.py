@@ -149,11 +149,11 @@ def geometry(params, x, cfg: Config):
   feats, jac = encoding.encode_with_jacobian(params["tables"], x, cfg.hash)
   inp = jnp.concatenate([x, feats], -1)
   sdf_net = _nets(cfg)[0]
-  apply = lambda i: sdf_net.apply({"params": params["sdf"]}, i)
-  out = apply(inp)
-  # d sdf / d inp through the small MLP only (points are independent, so the gradient of the sum
-  # is the per-point gradient); the chain to x uses the analytic encoding Jacobian.
-  g_inp = jax.grad(lambda i: apply(i)[..., 0].sum())(inp)
+  out, vjp = jax.vjp(lambda i: sdf_net.apply({"params": params["sdf"]}, i), inp)
+  # d sdf / d inp through the small MLP only (points are independent, so pulling back a one-hot
+  # cotangent on the SDF channel gives every point's gradient); the chain to x uses the analytic
+  # encoding Jacobian.
+  (g_inp,) = vjp(jnp.zeros_like(out).at[..., 0].set(1.0))
   grad = g_inp[..., :3] + jnp.einsum("...k,...kj->...j", g_inp[..., 3:], jac)
   return out[..., 0], grad, out[..., 1:]
 
