@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -80,9 +81,13 @@ def _cli(module: str, *args: str) -> tuple[str, float]:
 def prepare(job: sweep.Job) -> dict:
   """Synth (and, for associated poses, associate) one scene into job.params['scene_dir']."""
   scene_dir, stages = job.params["scene_dir"], {}
-  if not (Path(scene_dir) / "scene.json").exists():
+  if not Path(scene_dir).exists():
+    # Written beside and renamed: a scene directory that exists is complete, even after a kill.
+    partial = f"{scene_dir}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
     _, stages["synth"] = _cli("synth", "--scene", job.scene, "--resolution",
-                              job.params["resolution"], "--seed", str(SYNTH_SEED), "--out", scene_dir)
+                              job.params["resolution"], "--seed", str(SYNTH_SEED), "--out", partial)
+    os.replace(partial, scene_dir)
   if job.params["associate"] and not (Path(scene_dir) / "poses.json").exists():
     _, stages["associate"] = _cli("associate", scene_dir, "--report", "--seed", str(SYNTH_SEED))
   return {"stages_s": stages}
