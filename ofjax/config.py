@@ -124,9 +124,9 @@ PRESETS: dict[str, Config] = {
     "cpu": Config(
         hash=HashConfig(log2_table_size=16),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
-                            cos_anneal_steps=1500, wli_guided_samples=8),
+                            cos_anneal_steps=1000, wli_guided_samples=8),
         optim=OptimConfig(warmup_steps=100),
-        train=TrainConfig(steps=2000, n_rays=512, log_every=50, checkpoint_every=1000,
+        train=TrainConfig(steps=1200, n_rays=512, log_every=50, checkpoint_every=400,
                           mesh_resolution=192),
         preset="cpu",
     ),
