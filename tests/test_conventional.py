@@ -8,19 +8,9 @@ import trimesh
 
 from ofjax import conventional, metrics
 from ofjax import scene as scn
+from plates import grid_plate
 
 RED, GREEN = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
-
-
-def plate(x0, x1, z, cells):
-  g = np.linspace(x0, x1, cells + 1)
-  gx, gy = np.meshgrid(g, g)
-  verts = np.stack([gx, gy, np.full_like(gx, z)], -1).reshape(-1, 3)
-  i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
-  a = (i * (cells + 1) + j).ravel()
-  faces = np.concatenate([np.stack([a, a + 1, a + cells + 2], -1),
-                          np.stack([a, a + cells + 2, a + cells + 1], -1)])
-  return trimesh.Trimesh(verts, faces, process=False)
 
 
 def look_at(centre, target, up_hint) -> np.ndarray:
@@ -47,7 +37,7 @@ def test_most_frontal_unoccluded_view_colours_each_vertex():
   # frontal for every vertex; the floor under the lid is hidden from A, and from B the lid's
   # shadow is shifted by 10 um towards -x, so floor points under the lid with x in (50, 60) are
   # seen by B only.
-  floor, lid = plate(0.0, 100.0, 0.0, 50), plate(40.0, 60.0, 10.0, 10)
+  floor, lid = grid_plate(0.0, 100.0, 0.0, 50), grid_plate(40.0, 60.0, 10.0, 10)
   mesh = trimesh.util.concatenate([floor, lid])
   normals = np.tile([0.0, 0.0, 1.0], (len(mesh.vertices), 1))
   target = np.array([50.0, 50.0, 0.0])

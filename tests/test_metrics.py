@@ -9,6 +9,7 @@ import trimesh
 
 from ofjax import eval as evaluation
 from ofjax import metrics
+from plates import grid_plate
 
 SIZE = 100.0  # um, side of the test plates
 N = 20_000  # pred samples: enough for means within ~1% (the errors here are exact, not sampled)
@@ -16,15 +17,8 @@ N = 20_000  # pred samples: enough for means within ~1% (the errors here are exa
 
 def plate(z: float, size: float = SIZE, cells: int = 20) -> trimesh.Trimesh:
   """A flat square plate at height z, subdivided into cells^2 quads, with colours linear in x, y."""
-  g = np.linspace(0.0, size, cells + 1)
-  gx, gy = np.meshgrid(g, g)
-  verts = np.stack([gx, gy, np.full_like(gx, z)], -1).reshape(-1, 3)
-  i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
-  a = (i * (cells + 1) + j).ravel()
-  faces = np.concatenate([np.stack([a, a + 1, a + cells + 2], -1),
-                          np.stack([a, a + cells + 2, a + cells + 1], -1)])
-  mesh = trimesh.Trimesh(verts, faces, process=False)
-  mesh.visual.vertex_colors = np.round(albedo(verts) * 255).astype(np.uint8)
+  mesh = grid_plate(0.0, size, z, cells)
+  mesh.visual.vertex_colors = np.round(albedo(mesh.vertices) * 255).astype(np.uint8)
   return mesh
 
 
