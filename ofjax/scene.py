@@ -23,6 +23,7 @@ Every file is written atomically; scene.json is written last.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -169,7 +170,35 @@ def intrinsics_to_json(cam: WLIScan | OMImage) -> dict[str, Any]:
 
 
 def K_from_json(d: dict[str, Any]) -> np.ndarray:
-  return np.array([[d["fx"], 0, d["cx"]], [0, d["fy"], d["cy"]], [0, 0, 1]], np.float64)
+  fx, fy = numbers([d["fx"], d["fy"]], 2, "focal length", positive=True)
+  cx, cy = numbers([d["cx"], d["cy"]], 2, "principal point")
+  return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+
+
+# Mistakes in a JSON file's structure (a field missing, or of the wrong type or size).
+MALFORMED = (KeyError, TypeError, ValueError, AttributeError, IndexError)
+
+
+def numbers(value, n: int, what: str, positive: bool = False) -> tuple[float, ...]:
+  """`value` as n finite floats (positive ones with `positive`), else a ValueError naming `what`."""
+  if isinstance(value, (str, bytes, dict)) or np.shape(value) != (n,):
+    raise ValueError(f"{what} is {value!r}, not {n} numbers")
+  vals = tuple(float(v) for v in value)
+  if not all(np.isfinite(vals)) or (positive and min(vals) <= 0):
+    kind = "finite positive" if positive else "finite"
+    raise ValueError(f"{what} is {value!r}, not {n} {kind} numbers")
+  return vals
+
+
+@contextlib.contextmanager
+def json_fields(path, fix: str):
+  """Turns a MALFORMED error while reading the fields of the JSON file `path` into a UserError."""
+  try:
+    yield
+  except MALFORMED as e:
+    detail = (str(e).splitlines() or [""])[0]
+    raise UserError(f"{path}: a field is missing or malformed ({type(e).__name__}: {detail}); "
+                    f"{fix}") from None
 
 
 def camera_key(modality: str, name: str) -> str:
@@ -192,23 +221,24 @@ def poses_to_json(scene: Scene) -> dict[str, Any]:
 
 def apply_poses(scene: Scene, poses: dict[str, Any], path: str | Path = "poses.json") -> None:
   """Sets every camera's c2w (and OM intrinsics) from a poses file's contents, validating them."""
-  by_name = {c.get("name"): c for c in poses.get("cameras", [])}
-  for modality, items in (("wli", scene.wli), ("om", scene.om)):
-    for cam in items:
-      entry = by_name.get(camera_key(modality, cam.name))
-      if entry is None:
-        raise UserError(f"{path}: no pose for camera {camera_key(modality, cam.name)!r}; "
-                        "re-run `python -m ofjax.associate` on this scene")
-      c2w = np.asarray(entry.get("c2w"), np.float64)
-      if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
-        raise UserError(f"{path}: camera {entry['name']!r} has a c2w that is not a finite 4x4 "
-                        "matrix; fix or regenerate the poses file")
-      if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
-        raise UserError(f"{path}: camera {entry['name']!r} has a singular rotation; fix or "
-                        "regenerate the poses file")
-      cam.c2w = c2w
-      if modality == "om":
-        cam.K = K_from_json(entry["intrinsics"])
+  with json_fields(path, "fix or regenerate the poses file"):
+    by_name = {c.get("name"): c for c in poses.get("cameras", [])}
+    for modality, items in (("wli", scene.wli), ("om", scene.om)):
+      for cam in items:
+        entry = by_name.get(camera_key(modality, cam.name))
+        if entry is None:
+          raise UserError(f"{path}: no pose for camera {camera_key(modality, cam.name)!r}; "
+                          "re-run `python -m ofjax.associate` on this scene")
+        c2w = np.asarray(entry.get("c2w"), np.float64)
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+          raise UserError(f"{path}: camera {entry['name']!r} has a c2w that is not a finite 4x4 "
+                          "matrix; fix or regenerate the poses file")
+        if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
+          raise UserError(f"{path}: camera {entry['name']!r} has a singular rotation; fix or "
+                          "regenerate the poses file")
+        cam.c2w = c2w
+        if modality == "om":
+          cam.K = K_from_json(entry["intrinsics"])
 
 
 def load_poses(path: str | Path) -> dict[str, Any]:
@@ -286,38 +316,44 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
     meta = json.loads(meta_path.read_text())
   except (json.JSONDecodeError, UnicodeDecodeError):
     raise UserError(f"{meta_path}: not valid JSON; regenerate the scene bundle") from None
+  meta = meta if isinstance(meta, dict) else {}
   if meta.get("format") != FORMAT or meta.get("version") != VERSION:
     raise UserError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')!r}"
                     f" is not {FORMAT!r} version {VERSION}; regenerate the scene bundle")
-  wli = []
-  for m in meta["wli"]:
-    f = directory / m["file"]
-    try:
-      with np.load(f) as z:
-        depth = np.asarray(z["depth"], np.float32)
-    except FileNotFoundError:
-      raise UserError(f"{f}: WLI file listed in scene.json is missing; restore it") from None
-    except Exception as e:  # noqa: BLE001 - numpy raises many kinds on corrupt archives
-      raise UserError(f"{f}: cannot read the WLI depth map ({type(e).__name__}); replace the "
-                      "file") from None
-    if depth.ndim != 2:
-      raise UserError(f"{f}: depth must be a 2-D map, got shape {depth.shape}; replace the file")
-    if not np.isfinite(depth).any():
-      raise UserError(f"{f}: every pixel is a void; replace the file or drop the scan from "
-                      "scene.json")
-    wli.append(WLIScan(m["name"], depth, tuple(m["pixel_size"]), prior=m.get("prior")))
-  om = []
-  for m in meta["om"]:
-    f = directory / m["file"]
-    if not f.is_file():
-      raise UserError(f"{f}: OM photo listed in scene.json is missing; restore it")
-    intr = m.get("intrinsics")
-    om.append(OMImage(m["name"], read_png(f), None if intr is None else K_from_json(intr)))
-  norm = meta.get("normalization")
-  scene = Scene(wli, om, name=meta.get("name", directory.name), units=meta.get("units", "um"),
-                source=meta.get("source", {}),
-                normalization=None if norm is None else Normalization(tuple(norm["center"]),
-                                                                      float(norm["scale"])))
+  with json_fields(meta_path, "fix or regenerate the scene bundle"):
+    wli = []
+    for m in meta["wli"]:
+      f = directory / m["file"]
+      try:
+        with np.load(f) as z:
+          depth = np.asarray(z["depth"], np.float32)
+      except FileNotFoundError:
+        raise UserError(f"{f}: WLI file listed in scene.json is missing; restore it") from None
+      except Exception as e:  # noqa: BLE001 - numpy raises many kinds on corrupt archives
+        raise UserError(f"{f}: cannot read the WLI depth map ({type(e).__name__}); replace the "
+                        "file") from None
+      if depth.ndim != 2:
+        raise UserError(f"{f}: depth must be a 2-D map, got shape {depth.shape}; replace the file")
+      if not np.isfinite(depth).any():
+        raise UserError(f"{f}: every pixel is a void; replace the file or drop the scan from "
+                        "scene.json")
+      prior = m.get("prior")
+      if prior is not None and not isinstance(prior, dict):
+        raise ValueError(f"scan {m['name']!r}: prior is {prior!r}, not an object")
+      wli.append(WLIScan(m["name"], depth, numbers(m["pixel_size"], 2, "pixel_size", True), prior))
+    om = []
+    for m in meta["om"]:
+      f = directory / m["file"]
+      if not f.is_file():
+        raise UserError(f"{f}: OM photo listed in scene.json is missing; restore it")
+      intr = m.get("intrinsics")
+      om.append(OMImage(m["name"], read_png(f), None if intr is None else K_from_json(intr)))
+    norm = meta.get("normalization")
+    scene = Scene(wli, om, name=meta.get("name", directory.name), units=meta.get("units", "um"),
+                  source=meta.get("source", {}),
+                  normalization=None if norm is None else Normalization(
+                      numbers(norm["center"], 3, "normalization center"),
+                      numbers([norm["scale"]], 1, "normalization scale", True)[0]))
   if poses is False:  # the raw data only (ofjax.associate makes the poses)
     return scene
   poses_path = Path(poses) if poses is not None else directory / "poses.json"

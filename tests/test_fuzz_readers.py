@@ -2,11 +2,15 @@
 
 Each reader gets a valid seed file, then hypothesis truncates it, flips bytes in it, or replaces it
 with random bytes; the reader must either return or raise ofjax.errors.UserError (the documented
-error), never anything else.
+error), never anything else. The native bundle (scene.load_scene) has each of its files mutated in
+turn, its JSON files also as documents.
 """
 
 import io
 import json
+import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +23,11 @@ from ofjax import scene as scene_lib
 from ofjax.errors import UserError
 from ofjax.io import om, opticfusion, wli
 
-FUZZ = settings(max_examples=200, deadline=None, database=None,
+sys.path.insert(0, str(Path(__file__).parent))
+
+# OFJAX_FUZZ_EXAMPLES=N runs N examples per reader instead of 200 (a deeper search by hand).
+FUZZ = settings(max_examples=int(os.environ.get("OFJAX_FUZZ_EXAMPLES", 200)), deadline=None,
+                database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 
@@ -59,6 +67,41 @@ def _xml():
           b'</transform></camera></cameras></chunk></document>')
 
 
+# Instrument formats whose writers want a path: surfalize (.x3p, .sur), tifffile, h5py (.datx).
+
+
+def _written(name, write):
+  """The bytes of a small valid file that `write(path)` makes (writers that want a path)."""
+  with tempfile.TemporaryDirectory() as d:
+    path = Path(d) / name
+    write(path)
+    return path.read_bytes()
+
+
+def _heights(seed):
+  return np.random.default_rng(seed).normal(size=(6, 7))
+
+
+def _surfalize(ext):
+  import surfalize
+  return lambda: _written(f"m.{ext}", lambda p: surfalize.Surface(_heights(3), 0.5, 0.5).save(p))
+
+
+def _tif():
+  import tifffile
+  return _written("m.tif", lambda p: tifffile.imwrite(p, _heights(4).astype(np.float32)))
+
+
+def _datx():
+  from test_io_datx import write_datx
+  return _written("m.datx", lambda p: write_datx(p, _heights(5) * 100.0))
+
+
+def _read_datx(path):
+  from ofjax.io import datx
+  return datx.read_datx(path)
+
+
 READERS = {
     "npy": (".npy", _npy, lambda p: wli.read_height_map(p, pixel_size=1.0)),
     "npz": (".npz", _npz, lambda p: wli.read_height_map(p, pixel_size=1.0)),
@@ -66,6 +109,11 @@ READERS = {
     "aln": (".aln", _aln, opticfusion.read_aln),
     "camera.xml": (".xml", _xml, opticfusion.read_metashape),
     "poses.json": (".json", _poses, scene_lib.load_poses),
+    "x3p": (".x3p", _surfalize("x3p"), wli.read_height_map),
+    "sur": (".sur", _surfalize("sur"), wli.read_height_map),
+    "tif": (".tif", _tif, lambda p: wli.read_height_map(p, pixel_size=1.0)),
+    "tiff": (".tiff", _tif, lambda p: wli.read_height_map(p, pixel_size=1.0)),
+    "datx": (".datx", _datx, _read_datx),
 }
 
 
@@ -99,5 +147,68 @@ def test_reader_raises_only_user_errors(tmp_path, name):
       read(read_path)
     except UserError as e:
       assert "\n" not in str(e) and str(read_path.name) in str(e)
+
+  check()
+
+
+# The native bundle: every file of a tiny scene is mutated as bytes, and its JSON files also as
+# documents (a value replaced by another JSON value, or a key dropped), which reaches the
+# structure checks that byte mutations mostly stop short of (invalid JSON).
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-3, 10**6) | st.floats() | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner,
+                                                                 max_size=3), max_leaves=8)
+
+
+def _nodes(doc, at=()):
+  """Paths (key tuples) of every node of a JSON document below the root."""
+  items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+  for k, v in items:
+    yield at + (k,)
+    yield from _nodes(v, at + (k,))
+
+
+@st.composite
+def mutated_json(draw, seed: bytes):
+  doc = json.loads(seed)
+  at = draw(st.sampled_from(list(_nodes(doc))))
+  parent = doc
+  for k in at[:-1]:
+    parent = parent[k]
+  if isinstance(parent, dict) and draw(st.booleans()):
+    del parent[at[-1]]
+  else:
+    parent[at[-1]] = draw(json_values)
+  return json.dumps(doc).encode()
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+  import analytic_scene
+  scene, _ = analytic_scene.make(wli_px=6, om_hw=(4, 5), n_om=1)
+  scene.wli = scene.wli[:1]
+  return scene_lib.save_scene(scene, tmp_path_factory.mktemp("bundle") / "s", write_poses=True)
+
+
+BUNDLE_FILES = ("scene.json", "poses.json", "wli/0000.npz", "om/0000.png")
+
+
+def test_load_scene_raises_only_user_errors(bundle):
+  seeds = {name: (bundle / name).read_bytes() for name in BUNDLE_FILES}
+  scene_lib.load_scene(bundle)  # the seed bundle is valid
+
+  @FUZZ
+  @given(data=st.data())
+  def check(data):
+    name = data.draw(st.sampled_from(BUNDLE_FILES))
+    seed = seeds[name]
+    structural = name.endswith(".json") and data.draw(st.booleans())
+    (bundle / name).write_bytes(data.draw(mutated_json(seed) if structural else mutated(seed)))
+    try:
+      scene_lib.load_scene(bundle)
+    except UserError as e:
+      assert "\n" not in str(e) and str(bundle) in str(e), str(e)
+    finally:
+      (bundle / name).write_bytes(seed)
 
   check()
