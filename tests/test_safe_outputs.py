@@ -1,0 +1,173 @@
+"""Safe outputs: an interrupted or failed export, training or association keeps the previous result.
+
+The interruptions are real SIGKILLs of real `python -m ofjax.<module>` subprocesses. To kill at the
+moment that matters rather than at a guessed time, the subprocess installs a Python audit hook
+(sys.addaudithook, the interpreter's own event mechanism; nothing of ofjax or a library is
+replaced) that sends SIGKILL to its own process when the temporary file beside the result is
+opened for writing ("written"), or when it is about to be renamed onto the result ("renamed"): the
+write is then complete but not yet in place, the last moment an unsafe writer could have lost the
+old file. A SIGKILL leaves no chance to clean up, so the hidden temporary `.<name>.*` may remain;
+the result's own name must still hold the previous bytes.
+"""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+
+TRAIN = ["--steps", "20", "--rays", "64", "--mesh-resolution", "24", "--quiet"]
+EXPORT_RESOLUTION = "48"  # another resolution than the run's: the new mesh differs from the old
+
+# Runs `python -m MODULE ARGS...` and SIGKILLs itself at MOMENT on the file named TARGET:
+#   "written"  the temporary `.TARGET.*` exists and is being opened to write the content into it;
+#   "renamed"  the temporary, complete, is about to be renamed onto TARGET.
+KILLER = r"""
+import os, runpy, signal, sys
+moment, target, module, *args = sys.argv[1:]
+def hook(event, a):
+  if moment == "written" and event == "open" and isinstance(a[0], str):
+    hit = os.path.basename(a[0]).startswith(f".{target}.") and os.path.exists(a[0])
+  elif moment == "renamed" and event == "os.rename":  # os.replace raises this event too
+    hit = os.path.basename(os.fsdecode(a[1])) == target
+  else:
+    hit = False
+  if hit:
+    os.kill(os.getpid(), signal.SIGKILL)
+sys.addaudithook(hook)
+sys.argv = [module, *args]
+runpy.run_module(module, run_name="__main__", alter_sys=True)
+"""
+
+
+def _env(cache):
+  # One persistent compilation cache for the subprocesses: only the first one compiles.
+  return {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(cache)}
+
+
+def _run(cache, module, *args, kill_at=None):
+  """`python -m module args` (SIGKILLed at kill_at = (moment, file name), see KILLER)."""
+  argv = ["-c", KILLER, *kill_at, module] if kill_at else ["-m", module]
+  return subprocess.run([sys.executable, *argv, *map(str, args)], env=_env(cache),
+                        capture_output=True, text=True, timeout=300)
+
+
+def _listing(d):
+  return sorted(str(p.relative_to(d)) for p in Path(d).rglob("*"))
+
+
+def _left_over(d, before, name):
+  """New entries of d since `before`: only hidden temporaries of `name` may be left by a kill."""
+  new = sorted(set(_listing(d)) - set(before))
+  assert all(Path(p).name.startswith(f".{name}.") for p in new), new
+  return new
+
+
+def _scene(d, **kw):
+  import analytic_scene
+  from ofjax.scene import save_scene
+  scene, _ = analytic_scene.make(wli_px=24, om_hw=(24, 32), **kw)
+  return scene, save_scene(scene, d, write_poses=True)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+  """(scene dir, run dir, JAX cache dir) of a tiny finished run with mesh.ply."""
+  from ofjax import train
+  root = tmp_path_factory.mktemp("safe")
+  _, scene_dir = _scene(root / "scene", n_om=6)
+  run = root / "run"
+  assert train.main(["--data", str(scene_dir), "--out", str(run), *TRAIN]) == 0
+  assert (run / "mesh.ply").is_file()
+  return scene_dir, run, root / "jax_cache"
+
+
+@pytest.fixture
+def run_copy(trained, tmp_path):
+  """A private copy of the trained run (tests kill processes in it) and its mesh bytes."""
+  run = shutil.copytree(trained[1], tmp_path / "run")
+  return run, (run / "mesh.ply").read_bytes()
+
+
+@pytest.mark.parametrize("moment", ["written", "renamed"])
+def test_export_killed_mid_write_keeps_the_previous_mesh(trained, run_copy, moment):
+  run, old = run_copy
+  before = _listing(run)
+  res = _run(trained[2], "ofjax.export", run, "--resolution", EXPORT_RESOLUTION,
+             kill_at=(moment, "mesh.ply"))
+  assert res.returncode == -signal.SIGKILL, (res.returncode, res.stderr)
+  assert (run / "mesh.ply").read_bytes() == old
+  left = _left_over(run, before, "mesh.ply")
+  # The kill came after the temporary file was made: the export was really writing.
+  assert len(left) == 1, left
+
+
+def test_successful_export_replaces_the_mesh_by_rename(run_copy):
+  from ofjax import export
+  run, old = run_copy
+  before, inode = _listing(run), (run / "mesh.ply").stat().st_ino
+  assert export.main([str(run), "--resolution", EXPORT_RESOLUTION]) == 0
+  new = (run / "mesh.ply").read_bytes()
+  assert new != old and _listing(run) == before  # no temporary left beside it
+  # A new file took the name (os.replace), rather than the old one being rewritten in place.
+  assert (run / "mesh.ply").stat().st_ino != inode
+  mesh = trimesh.load(run / "mesh.ply", process=False)
+  assert len(mesh.faces) > 0 and np.all(np.isfinite(mesh.vertices))
+
+
+def test_export_refuses_non_finite_parameters(trained, run_copy):
+  import jax
+
+  from ofjax import checkpoint, export, fields
+  from ofjax import train as train_lib
+  from ofjax.config import Config
+  run, old = run_copy
+  cfg = Config.from_dict(json.loads((run / "config.json").read_text())["config"])
+  template = fields.init_params(jax.random.PRNGKey(0), cfg)
+  step, params, opt_state = checkpoint.restore(run, template,
+                                               train_lib.make_optimizer(cfg).init(template))
+  leaves, tree = jax.tree_util.tree_flatten(params)
+  leaves[0] = np.asarray(leaves[0]).copy()
+  leaves[0].flat[0] = np.nan  # one NaN weight: a diverged run
+  checkpoint.save(run, step, jax.tree_util.tree_unflatten(tree, leaves), opt_state, keep=1)
+  before = _listing(run)
+  res = _run(trained[2], "ofjax.export", run)
+  err = res.stderr.strip().splitlines()
+  assert res.returncode == 2 and len(err) == 1, res.stderr
+  assert err[0].startswith("ofjax: error: ") and "not finite" in err[0] and "mesh.ply" in err[0]
+  assert (run / "mesh.ply").read_bytes() == old and _listing(run) == before
+  assert export.main([str(run)]) == 2  # in-process too: the same refusal, nothing written
+
+
+def test_overwrite_keeps_the_old_mesh_until_the_new_one_is_written(trained, run_copy):
+  scene_dir, _, cache = trained
+  run, old = run_copy
+  res = _run(cache, "ofjax.train", "--data", scene_dir, "--out", run, *TRAIN, "--seed", "1",
+             "--overwrite", kill_at=("renamed", "mesh.ply"))
+  assert res.returncode == -signal.SIGKILL, (res.returncode, res.stderr)
+  # The new run had finished training (its config and last checkpoint are there) ...
+  assert json.loads((run / "config.json").read_text())["config"]["train"]["seed"] == 1
+  assert (run / "checkpoints" / "step_00000020.msgpack").is_file()
+  # ... and its mesh was complete but not yet renamed: the old mesh is still the one in place.
+  assert (run / "mesh.ply").read_bytes() == old
+  assert [p.name for p in run.glob(".mesh.ply.*")]
+
+
+def test_failed_association_keeps_the_existing_poses(tmp_path):
+  # Two photos: structure-from-motion needs three, so association fails after reading the scene.
+  _, scene_dir = _scene(tmp_path / "scene", n_om=2)
+  poses = (scene_dir / "poses.json").read_bytes()
+  before = _listing(scene_dir)
+  res = _run(tmp_path / "jax_cache", "ofjax.associate", scene_dir)
+  err = res.stderr.strip().splitlines()
+  assert res.returncode == 2 and len(err) == 1 and err[0].startswith("ofjax: error: "), res.stderr
+  assert (scene_dir / "poses.json").read_bytes() == poses and _listing(scene_dir) == before
