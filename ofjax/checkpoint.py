@@ -40,20 +40,32 @@ def save(run_dir, step: int, params, opt_state, keep: int) -> Path:
   return path
 
 
-def restore(run_dir, params_template, opt_state_template, step: int | None = None):
-  """Returns (step, params, opt_state) of checkpoint `step` (default: the newest), or None."""
+def _read(run_dir, step: int | None, parse):
+  """parse(bytes) of checkpoint `step` (default: the newest), or None when there is none."""
   steps = list_steps(run_dir)
   if not steps:
     return None
   step = steps[-1] if step is None else step
   path = _dir(run_dir) / f"step_{step:08d}.msgpack"
-  template = {"step": np.int64(0), "params": params_template, "opt_state": opt_state_template}
   try:
-    state = serialization.from_bytes(template, path.read_bytes())
+    return parse(path.read_bytes())
   except FileNotFoundError:
     raise UserError(f"{path}: checkpoint not found; pick one of steps {steps}") from None
   except Exception as e:  # noqa: BLE001 - msgpack and flax raise many kinds on a foreign file
     raise UserError(f"{path}: cannot restore this checkpoint ({type(e).__name__}); it belongs to "
                     "another ofjax version or config, or is damaged: delete it to use the one "
                     "before") from None
-  return int(state["step"]), state["params"], state["opt_state"]
+
+
+def restore(run_dir, params_template, opt_state_template, step: int | None = None):
+  """Returns (step, params, opt_state) of checkpoint `step` (default: the newest), or None."""
+  template = {"step": np.int64(0), "params": params_template, "opt_state": opt_state_template}
+  state = _read(run_dir, step, lambda data: serialization.from_bytes(template, data))
+  return None if state is None else (int(state["step"]), state["params"], state["opt_state"])
+
+
+def restore_params(run_dir, params_template, step: int | None = None):
+  """The params of checkpoint `step` (default: the newest), or None; the optimiser state is not
+  read, so exporting works whatever optimiser wrote the checkpoint."""
+  return _read(run_dir, step, lambda data: serialization.from_state_dict(
+      params_template, serialization.msgpack_restore(data)["params"]))

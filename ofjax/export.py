@@ -139,21 +139,18 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
 
 def load_run(run_dir: Path):
   """(params, cfg, norm, box, units) of a run directory's newest checkpoint."""
-  from ofjax import train as train_lib
   cfg_path = run_dir / "config.json"
   if not cfg_path.is_file():
     raise UserError(f"{cfg_path}: not found; is {run_dir} an ofjax run directory?")
   meta = json.loads(cfg_path.read_text())
   cfg = Config.from_dict(meta["config"])
-  template = fields.init_params(jax.random.PRNGKey(0), cfg)
-  opt_template = train_lib.make_optimizer(cfg).init(template)
-  state = checkpoint.restore(run_dir, template, opt_template)
-  if state is None:
+  params = checkpoint.restore_params(run_dir, fields.init_params(jax.random.PRNGKey(0), cfg))
+  if params is None:
     raise UserError(f"{run_dir}: no checkpoint found; train first")
   norm = scene_lib.Normalization(tuple(meta["normalization"]["center"]),
                                  float(meta["normalization"]["scale"]))
   box = tuple(tuple(b) for b in meta["observed_box"])
-  return state[1], cfg, norm, box, meta.get("units", "um")
+  return params, cfg, norm, box, meta.get("units", "um")
 
 
 @cli
