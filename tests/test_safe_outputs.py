@@ -37,9 +37,10 @@ KILLER = r"""
 import os, runpy, signal, sys
 moment, target, module, *args = sys.argv[1:]
 def hook(event, a):
-  if moment == "written" and event == "open" and isinstance(a[0], str):
-    hit = os.path.basename(a[0]).startswith(f".{target}.") and os.path.exists(a[0])
-  elif moment == "renamed" and event == "os.rename":  # os.replace raises this event too
+  if moment == "written" and event == "open" and isinstance(a[0], (str, bytes, os.PathLike)):
+    path = os.fsdecode(a[0])  # open(path, mode, flags); an int is an already open descriptor
+    hit = os.path.basename(path).startswith(f".{target}.") and os.path.exists(path)
+  elif moment == "renamed" and event == "os.rename":  # os.replace(src, dst, ...) raises it too
     hit = os.path.basename(os.fsdecode(a[1])) == target
   else:
     hit = False
@@ -173,12 +174,21 @@ def test_overwrite_keeps_the_old_mesh_until_the_new_one_is_written(trained, run_
   assert new.read_bytes() != old and len(trimesh.load(new, process=False).faces) > 0
 
 
-def test_failed_association_keeps_the_existing_poses(tmp_path):
-  # Two photos: structure-from-motion needs three, so association fails after reading the scene.
-  _, scene_dir = _scene(tmp_path / "scene", n_om=2)
+@pytest.mark.parametrize("case, expected", [
+    ("too few photos", "structure-from-motion needs at least 3"),
+    ("non-overlapping scan", "scan(s) junk (best fitness")])
+def test_failed_association_keeps_the_existing_poses(tmp_path, case, expected):
+  from test_bad_input import _add_junk_scan, _cap
+  # Two photos fail before SfM (it needs three); a scan of random heights fails after the WLI
+  # registration. Either way the previous poses.json must survive.
+  if case == "too few photos":
+    scene_dir = _cap(tmp_path, n_om=2, n_wli=1)
+  else:
+    scene_dir = _add_junk_scan(_cap(tmp_path, n_wli=1))
   poses = (scene_dir / "poses.json").read_bytes()
   before = _listing(scene_dir)
   res = _run(tmp_path / "jax_cache", "ofjax.associate", scene_dir)
   err = res.stderr.strip().splitlines()
   assert res.returncode == 2 and len(err) == 1 and err[0].startswith("ofjax: error: "), res.stderr
+  assert expected in err[0], err[0]
   assert (scene_dir / "poses.json").read_bytes() == poses and _listing(scene_dir) == before
