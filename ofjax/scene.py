@@ -340,7 +340,8 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
       prior = m.get("prior")
       if prior is not None and not isinstance(prior, dict):
         raise ValueError(f"scan {m['name']!r}: prior is {prior!r}, not an object")
-      wli.append(WLIScan(m["name"], depth, numbers(m["pixel_size"], 2, "pixel_size", True), prior))
+      wli.append(WLIScan(m["name"], depth, numbers(m["pixel_size"], 2, "pixel_size", True),
+                         prior=prior))
     om = []
     for m in meta["om"]:
       f = directory / m["file"]
