@@ -187,15 +187,27 @@ def bundle(tmp_path_factory):
   import analytic_scene
   scene, _ = analytic_scene.make(wli_px=6, om_hw=(4, 5), n_om=1)
   scene.wli = scene.wli[:1]
-  return scene_lib.save_scene(scene, tmp_path_factory.mktemp("bundle") / "s", write_poses=True)
+  scene.normalization = scene_lib.compute_normalization(scene)
+  return scene, scene_lib.save_scene(scene, tmp_path_factory.mktemp("bundle") / "s",
+                                     write_poses=True)
 
 
 BUNDLE_FILES = ("scene.json", "poses.json", "wli/0000.npz", "om/0000.png")
 
 
 def test_load_scene_raises_only_user_errors(bundle):
+  scene, bundle = bundle
   seeds = {name: (bundle / name).read_bytes() for name in BUNDLE_FILES}
-  scene_lib.load_scene(bundle)  # the seed bundle is valid
+  # The seed bundle is valid and reads back as written (the checks must not change a field).
+  for poses in (None, False):
+    back = scene_lib.load_scene(bundle, poses=poses)
+    assert back.normalization == scene.normalization
+    for a, b in zip(back.wli + back.om, scene.wli + scene.om):
+      assert a.name == b.name and (a.c2w is None if poses is False else
+                                   np.array_equal(a.c2w, b.c2w))
+    assert [(s.pixel_size, s.prior) for s in back.wli] == [(s.pixel_size, s.prior)
+                                                          for s in scene.wli]
+    np.testing.assert_array_equal(back.om[0].K, scene.om[0].K)
 
   @FUZZ
   @given(data=st.data())
