@@ -96,7 +96,7 @@ def prepare(job: sweep.Job) -> dict:
 def run_method(job: sweep.Job) -> dict:
   """One variant on one scene: reconstruct, evaluate, render; returns the metrics and timings."""
   p = job.params
-  run_dir, stages = Path(p["run_dir"]), {}
+  run_dir, stages, git = Path(p["run_dir"]), {}, git_state()  # the checkout is shared: per run
   if job.variant == "conventional":
     _, stages["conventional"] = _cli("conventional", p["scene_dir"], "--out", str(run_dir),
                                      "--poses", p["poses"])
@@ -109,7 +109,7 @@ def run_method(job: sweep.Job) -> dict:
                                 *steps, *TRAIN_FLAGS[job.variant])
     except NoSurface as e:
       return {"eval": None, "no_surface": str(e)[-sweep.STDOUT_TAIL_CHARS:],
-              "stages_s": {"train": time.time() - t0}, "run_dir": str(run_dir)}
+              "stages_s": {"train": time.time() - t0}, "run_dir": str(run_dir), "git": git}
   mesh = run_dir / "mesh.ply"
   out, stages["eval"] = _cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--json",
                              "--out", str(run_dir))
@@ -119,7 +119,7 @@ def run_method(job: sweep.Job) -> dict:
   plots.mesh_preview(run_dir / "preview.png", np.asarray(m.vertices), np.asarray(m.faces),
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
-          "run_dir": str(run_dir)}
+          "run_dir": str(run_dir), "git": git}
 
 
 def git_state() -> dict:
@@ -315,19 +315,20 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
               ratio_table(rows, scenes), "", "### The issue's targets", "",
               *targets(rows, scenes), "", "### Figures", ""]
     lines += [f"![{s}]({figures[(ps, s)]})" for s in scenes if (ps, s) in figures] + [""]
-  lines += ["## Runs", "", "| poses | scene | variant | seed | wall s | stages (s) | machine |",
-            "|---|---|---|---|---|---|---|"]
+  lines += ["## Runs", "", "| poses | scene | variant | seed | wall s | stages (s) | machine | "
+            "commit at start |", "|---|---|---|---|---|---|---|---|"]
   for r in records:
     j = r["job"]
     if "result" not in r:
       lines.append(f"| {j['params'].get('poses_source', '-')} | {j['scene']} | {j['variant']} | "
                    f"{j['seed']} | {r.get('wall_s', 0):.0f} | FAILED: {r.get('error', '')[:120]} | "
-                   f"{r['machine']['host']} |")
+                   f"{r['machine']['host']} | |")
       continue
     st = ", ".join(f"{k} {v:.0f}" for k, v in r["result"]["stages_s"].items()) + (
         " (no surface)" if r["result"].get("no_surface") else "")
     lines.append(f"| {j['params'].get('poses_source', '-')} | {j['scene']} | {j['variant']} | "
-                 f"{j['seed']} | {r['wall_s']:.0f} | {st} | {r['machine']['host']} |")
+                 f"{j['seed']} | {r['wall_s']:.0f} | {st} | {r['machine']['host']} | "
+                 f"{r['result'].get('git', {}).get('commit', 'not recorded')[:10]} |")
   return "\n".join(lines) + "\n"
 
 
