@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml scripts/syslibs.sh
 	bash scripts/syslibs.sh
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[dev,cluster]'
 	$(PY) -c "import open3d, pycolmap, jax; print('ofjax: environment ready (jax', jax.__version__, jax.default_backend() + ')')"
 	touch $(STAMP)
 
