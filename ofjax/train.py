@@ -451,14 +451,9 @@ def check_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
 
 
 def load_scene_for_training(args) -> scene_lib.Scene:
-  try:
-    from ofjax import io as ofio
-    loader = getattr(ofio, "load", None)
-  except ImportError:
-    loader = None
-  if loader is None:
-    return scene_lib.load_scene(args.data, poses=args.poses)
-  return loader(args.data, layout=args.layout, um_per_unit=args.um_per_unit, poses=args.poses)
+  """The scene in any layout ofjax reads (ofjax.io), with the poses the options name."""
+  from ofjax import io as ofio
+  return ofio.load(args.data, layout=args.layout, um_per_unit=args.um_per_unit, poses=args.poses)
 
 
 @cli
