@@ -9,7 +9,9 @@ Seeds, each refined by scaled point-to-point ICP (open3d, with_scaling=True), be
 The second seed needs no features, so sparse, noisy SfM points (whose FPFH descriptors differ
 from those of the dense WLI cloud) still align. Seeds are scored coarsely; the best few distinct
 ones are refined to the end and the best final fitness wins (a nearly symmetric sample fits its
-turned copy almost as well at a coarse gate).
+turned copy almost as well at a coarse gate). The result is rejected (UserError) unless its
+fitness is a clear peak over the scale: on a mostly flat sample scaled ICP drifts to a smaller
+scale (and an arbitrary turn) that fits as well, and wrong poses must not be written.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ SCORE_GATE_VOXELS = 6.0  # ... seeds are scored by the share of P_om within this
 SCORE_GATE_COARSE_VOXELS = 2.0  # ... or of global-resolution voxels, whichever is wider
 FINALISTS = 4  # the best-scored distinct seeds refined to the end
 DISTINCT_DEG = 10.0  # seeds whose rotations differ by less than this are the same solution
+SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
+SCALE_PEAK_RATIO = 0.9  # ... where the fitness must drop below this share of the found one
 
 
 @dataclasses.dataclass
@@ -96,6 +100,23 @@ def _refine(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
   return np.asarray(res.transformation) @ S, res
 
 
+def _fitness_at_scale(src, tgt, S: np.ndarray, factor: float, centre: np.ndarray,
+                      first_gate: float, final_gate: float) -> float:
+  """Fitness of the similarity S with its scale times `factor` (about `centre`, [3]) after a
+  rigid point-to-plane refit whose gate halves from `first_gate` down to `final_gate`."""
+  Sf = S.copy()
+  Sf[:3, :3] *= factor
+  Sf[:3, 3] = factor * S[:3, 3] + (1 - factor) * centre
+  scaled = o3d.geometry.PointCloud(src).transform(Sf)
+  T, gate = np.eye(4), first_gate
+  while True:
+    res = register.icp(scaled, tgt, T, max(gate, final_gate), max_iterations=50)
+    T = np.asarray(res.transformation)
+    if gate <= final_gate:
+      return float(res.fitness)
+    gate *= GATE_SHRINK
+
+
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
                     wli_voxel_um: float, om_forward: np.ndarray, min_fitness: float = 0.3,
                     scene_dir: str = "SCENE_DIR") -> Alignment:
@@ -157,6 +178,18 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: only {res.fitness:.0%} of the SfM "
                     f"points lie within {final_gate:.3g} um of the WLI surface (need "
                     f"{min_fitness:.0%}); check that the photos and scans show the same sample")
+  # Scaled ICP on a mostly flat sample (a circuit board) is free to shrink P_om: fewer points then
+  # fall into WLI voids or beyond its footprint, so the fitness keeps rising as the scale drops
+  # and the converged scale (and with it the turn) is arbitrary. A determined scale is a peak of
+  # the fitness: scales SCALE_PROBE either side must fit clearly worse.
+  probes = [_fitness_at_scale(src, tgt, S, 1 + d, c_wli, 2 * SCALE_PROBE * r_wli, final_gate)
+            for d in (-SCALE_PROBE, SCALE_PROBE)]
+  if max(probes) > SCALE_PEAK_RATIO * res.fitness:
+    raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
+                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as well "
+                    f"({max(probes):.0%} vs {res.fitness:.0%} within {final_gate:.3g} um), so the "
+                    "scale is not determined; scan a larger area with relief (WLI) or take photos "
+                    "with more overlap so that both clouds share distinct 3D structure")
   return Alignment(S, scale, float(res.fitness), float(res.inlier_rmse), residuals, seed, s0)
 
 
