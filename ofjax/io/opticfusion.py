@@ -170,7 +170,11 @@ def read_metashape(path: Path) -> tuple[list[dict], dict[str, dict], dict[str, n
     res = calib.find("resolution")
     if res is None:
       res = sensor.find("resolution")
-    wh = None if res is None else (int(res.get("width", 0)), int(res.get("height", 0)))
+    try:
+      wh = None if res is None else (int(res.get("width", 0)), int(res.get("height", 0)))
+    except ValueError:
+      raise UserError(f"{path}: <resolution> of sensor {sensor.get('id')} is not a pair of whole "
+                      "numbers; re-export the cameras from Metashape") from None
     sensors[sensor.get("id", "0")] = {"f": f, "resolution": wh}
   if not sensors:
     raise UserError(f"{path}: no sensor with a <calibration><f>; re-export the cameras from "
