@@ -28,6 +28,7 @@ MAX_IMAGE_SIZE = 1600  # SIFT on at most this many pixels along the longest side
 MAX_NUM_FEATURES = 4096  # SIFT keypoints per photo; enough for hundreds of matches per pair
 MIN_TRACK_LENGTH = 3  # P_om keeps points seen in at least this many photos ...
 MAX_POINT_ERROR_PX = 1.0  # ... with a mean reprojection error of at most this (pixels)
+SFM_THREADS = 1  # deterministic SfM (see _reconstruct)
 QUIET_LOG_LEVEL = 1  # glog level while pycolmap runs: warnings and errors only
 SAME_K_RTOL = 1e-6  # photos whose intrinsics differ by more than this do not share one camera
 
@@ -125,11 +126,20 @@ def _reconstruct(db: Path, workdir: Path, K: np.ndarray | None,
                  extraction: pycolmap.FeatureExtractionOptions,
                  seed: int) -> dict[int, pycolmap.Reconstruction]:
   """pycolmap's three stages: features, exhaustive matches, incremental mapping."""
+  # One thread and fixed RANSAC seeds in every stage: the same photos give the same model, so an
+  # association (and the tests' pose errors) repeat exactly run to run.
+  extraction.num_threads = SFM_THREADS
   pycolmap.extract_features(db, workdir / "images", camera_mode=pycolmap.CameraMode.SINGLE,
                             reader_options=reader, extraction_options=extraction,
                             device=pycolmap.Device.cpu)
-  pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+  matching = pycolmap.FeatureMatchingOptions()
+  matching.num_threads = SFM_THREADS
+  verification = pycolmap.TwoViewGeometryOptions()
+  verification.ransac.random_seed = seed
+  pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                            device=pycolmap.Device.cpu)
   opts = pycolmap.IncrementalPipelineOptions()
+  opts.num_threads = SFM_THREADS
   opts.random_seed = seed
   opts.mapper.random_seed = seed
   opts.triangulation.random_seed = seed
