@@ -259,7 +259,8 @@ def load_poses(path: str | Path) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------- bundle
 
 
-def _save_png(path: Path, image: np.ndarray, bits: int = 8) -> None:
+def save_png(path: Path, image: np.ndarray, bits: int = 8) -> None:
+  """Writes image: [H, W, 3] in [0, 1] as an 8- or 16-bit RGB PNG, atomically."""
   from PIL import Image
   img = np.clip(image, 0.0, 1.0)
   if bits == 16:
@@ -286,7 +287,7 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
                      "pixel_size": [float(v) for v in s.pixel_size], "prior": s.prior})
   for o in scene.om:
     f = f"om/{o.name}.png"
-    _save_png(directory / f, o.image)
+    save_png(directory / f, o.image)
     om_meta.append({"name": o.name, "file": f, "shape": list(o.shape),
                     "intrinsics": None if o.K is None else intrinsics_to_json(o)})
   if write_poses:

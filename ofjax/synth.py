@@ -597,7 +597,7 @@ def write_opticfusion(scene: scn.Scene, gt: GroundTruth, directory: Path) -> flo
     t_cam[:3, 3] = q.T @ (c2w[:3, 3] - am[:3, 3]) / scale
     cam = ET.SubElement(cams, "camera", id=str(k), sensor_id="0", component_id="0", label=o.name)
     ET.SubElement(cam, "transform").text = fmt(t_cam)
-    scn._save_png(directory / "op" / f"{o.name}.png", o.image)
+    scn.save_png(directory / "op" / f"{o.name}.png", o.image)
   ET.SubElement(ch, "reference").text = ('LOCAL_CS["Local Coordinates (m)",LOCAL_DATUM["Local '
                                          'Datum",0],UNIT["metre",1]]')
   ET.indent(root)

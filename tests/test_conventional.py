@@ -8,21 +8,10 @@ import trimesh
 
 from ofjax import conventional, metrics
 from ofjax import scene as scn
+from analytic_scene import look_at
 from plates import grid_plate
 
 RED, GREEN = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
-
-
-def look_at(centre, target, up_hint) -> np.ndarray:
-  """c2w with OpenCV axes: z towards the target, x = z cross up_hint, y = z cross x."""
-  z = np.asarray(target, float) - centre
-  z /= np.linalg.norm(z)
-  x = np.cross(z, up_hint)
-  x /= np.linalg.norm(x)
-  c2w = np.eye(4)
-  c2w[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-  c2w[:3, 3] = centre
-  return c2w
 
 
 def flat_photo(name, colour, c2w, size=200, half_fov=0.08):

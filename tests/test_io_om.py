@@ -134,6 +134,6 @@ def test_mismatched_sizes_name_the_odd_photo(tmp_path):
 def test_scene_bundle_png_16bit_round_trip(tmp_path):
   from ofjax import scene
   a = RNG.random((6, 9, 3)).astype(np.float32)
-  scene._save_png(tmp_path / "b.png", a, bits=16)
+  scene.save_png(tmp_path / "b.png", a, bits=16)
   # Quantisation to 16 bits: at most half a step of 1/65535.
   np.testing.assert_allclose(scene.read_png(tmp_path / "b.png"), a, rtol=0, atol=0.5 / 65535 + 1e-7)
