@@ -234,7 +234,8 @@ def test_scaled_alignment_recovers_a_known_similarity():
   pick = np.asarray(pcd.points)[rng.choice(len(pcd.points), 3000, replace=False)]
   p_om = ((pick - t) @ rot) / s_true + rng.normal(0, 0.2 / s_true, (3000, 3))
   forward = np.array([look(tilt, az, 1)[:3, 2] for tilt, az in OM_VIEWS]) @ GAUGE[:3, :3].T @ rot
-  al = align.align_om_to_wli(p_om, np.asarray(pcd.points), np.asarray(pcd.normals), PX, forward)
+  al = align.align_om_to_wli(p_om, np.asarray(pcd.points), np.asarray(pcd.normals), PX, forward,
+                             wli_up=GAUGE[:3, 2])
   assert al.scale == pytest.approx(s_true, rel=0.005)
   assert rot_deg((al.S[:3, :3] / al.scale).T @ rot) <= 0.2
   np.testing.assert_allclose(al.S[:3, 3], t, atol=0.005 * scene_size(scans))

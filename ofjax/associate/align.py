@@ -1,17 +1,30 @@
 """Step 2: the similarity that maps the SfM frame (P_om, OM cameras) into the WLI um frame (P_wli).
 
 Conventions: `S` is a [4, 4] similarity [s R | t] with x_um = s R x_sfm + t (s = um per SfM unit).
-Seeds, each refined by scaled point-to-point ICP (open3d, with_scaling=True), best fitness wins:
-  - FPFH + RANSAC on scale-normalised clouds: P_om scaled by the ratio of the clouds' robust
-    spreads (median distance to the median point), both centred;
-  - the acquisition geometry: OM photos are taken from above the sample, so the mean viewing
-    direction of the cameras points down (world -z); the remaining turn about z is swept.
-The second seed needs no features, so sparse, noisy SfM points (whose FPFH descriptors differ
-from those of the dense WLI cloud) still align. Seeds are scored coarsely; the best few distinct
-ones are refined to the end and the best final fitness wins (a nearly symmetric sample fits its
-turned copy almost as well at a coarse gate). The result is rejected (UserError) unless its
-fitness is a clear peak over the scale: on a mostly flat sample scaled ICP drifts to a smaller
-scale (and an arbitrary turn) that fits as well, and wrong poses must not be written.
+"Up" is the WLI frame's sample normal (world +z in ofjax.associate's frame); the height map of
+P_wli holds the range of its heights over the plane normal to up, in cells of a given size.
+
+Why not one-sided ICP fitness: the OM photos usually cover more than the WLI footprint, and P_wli
+has voids (steep sides). Scaled ICP scored by the share of SfM points near P_wli therefore shrinks
+P_om (more points land inside the footprint, fewer in voids), and on a mostly flat part (a
+circuit board) a shrunk, turned copy fits as well as the truth. The criterion here compares
+heights instead: an SfM point inside the WLI footprint costs min(r / gate, 1)^2, with r how far
+its height lies outside the range of the WLI heights in its cell (a point over a WLI void costs
+VOID_COST, points outside the footprint nothing), so a board point moved onto a component top
+pays in full. A candidate must also cover the footprint: the share of
+footprint cells with an SfM point nearby must be close to the best candidate's, which rules out
+solutions that slide most of P_om off the footprint to hide it.
+
+Search: the OM cameras look down on the sample, so their mean viewing direction fixes up in the
+SfM frame; the turn about up (every 15 degrees) and the scale (a log grid around the ratio of the
+clouds' robust spreads, which underestimates when the photos see more than the WLI) are swept,
+plus FPFH + RANSAC global registration on scale-normalised clouds as one more turn. Each
+candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coarse height map;
+the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
+height map); the best is finished with scaled point-to-point ICP and a rigid point-to-plane ICP,
+kept only if the height cost does not get worse. The result is rejected (UserError) when too few
+SfM points meet the WLI surface, or when scaling by SCALE_PROBE either way costs about as much
+(the scale is then not determined by the data, and wrong poses must not be written).
 """
 
 from __future__ import annotations
@@ -20,22 +33,34 @@ import dataclasses
 
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 
 from ofjax.associate import register
 from ofjax.errors import UserError
 
-GLOBAL_VOXELS_ACROSS = 40  # global registration resolution: clouds ~40 voxels across their spread
-YAW_STEPS = 24  # the camera-geometry seed tries the turn about z every 15 degrees
-SEED_GATE_SPREADS = 0.3  # coarse ICP gate of the seeds, in robust spreads
-FINAL_GATE_VOXELS = 1.5  # last ICP gate in P_wli voxels: wider gates let SfM points where
-# the WLI has voids (steep sides) pull on the scale (seed scene: 1.2% scale error at 3 voxels)
-GATE_SHRINK = 0.5  # the gate halves between ICP rounds ...
-SCORE_GATE_VOXELS = 6.0  # ... seeds are scored by the share of P_om within this many voxels
-SCORE_GATE_COARSE_VOXELS = 2.0  # ... or of global-resolution voxels, whichever is wider
-FINALISTS = 4  # the best-scored distinct seeds refined to the end
-DISTINCT_DEG = 10.0  # seeds whose rotations differ by less than this are the same solution
+GLOBAL_VOXELS_ACROSS = 40  # coarse resolution: clouds ~40 voxels across their robust spread
+YAW_STEPS = 24  # the turn about up is swept every 15 degrees
+SCALE_RANGE = (0.5, 2.2)  # swept scales relative to the spread-ratio estimate ...
+SCALE_STEP = 1.1  # ... in steps of this factor
+SEED_GATES_SPREADS = (0.3, 0.1)  # rigid ICP gates of the coarse search, in robust spreads ...
+SEED_GATE_VOXELS = 2.0  # ... then in coarse voxels (also the coarse height gate)
+FINE_CELL_VOXELS = 2.0  # fine height map cells, in P_wli voxels ...
+FINE_GATE_VOXELS = 3.0  # ... and the fine height gate (SfM points scatter ~1 voxel)
+VOID_COST = 0.5  # cost of an SfM point over a WLI void: unknown, half an outlier
+COVERAGE_SHARE = 0.7  # candidates must cover this share of the best candidate's footprint coverage
+FOOTPRINT_CLOSING = 2  # cells: closes the gaps between WLI samples before filling voids
+FINALISTS = 6  # the best distinct candidates searched over the scale
+DISTINCT_DEG = 10.0  # candidates whose turns differ by less than this ...
+DISTINCT_LOG_SCALE = 0.15  # ... and whose scales differ by less than this (log) are one solution
+SCALE_SEARCH = 0.12  # the 1-D scale search spans +-this (log) around a finalist ...
+SCALE_GRID = 7  # ... first on a grid of this many scales ...
+GOLDEN_STEPS = 10  # ... then golden-section steps around the best grid scale
+FINISH_SEED_VOXELS = 8.0  # the scaled ICP finish starts with this gate in P_wli voxels ...
+FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM points where the WLI
+# has voids pull on the scale)
+GATE_SHRINK = 0.5  # ICP gates halve between rounds
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
-SCALE_PEAK_RATIO = 0.9  # ... where the fitness must drop below this share of the found one
+SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
 
 
 @dataclasses.dataclass
@@ -45,8 +70,56 @@ class Alignment:
   fitness: float  # share of P_om points within the final gate of P_wli
   rmse_um: float  # RMS distance of those points
   residuals_um: np.ndarray  # [N] distance of every aligned P_om point to its nearest P_wli point
-  seed: str  # "fpfh" or "cameras": which seed won
+  seed: str  # "fpfh" or "cameras": where the winning turn came from
   initial_scale: float  # the spread-ratio estimate of s
+  height_cost: float  # the fine height cost of S (module docstring), 0 = every point on H
+  coverage: float  # share of the WLI footprint with an aligned SfM point nearby
+
+
+class HeightMap:
+  """Height range of a z-up cloud on a grid of `cell`-sized squares, and the costs of the module
+  docstring. points: [M, 3] with z up."""
+
+  def __init__(self, points: np.ndarray, cell: float):
+    self.cell = cell
+    self.lo = points[:, :2].min(0) - 2 * cell
+    ij = self._cells(points)
+    self.shape = tuple(ij.max(0) + 3)
+    top, bottom = np.full(self.shape, -np.inf), np.full(self.shape, np.inf)
+    np.maximum.at(top, (ij[:, 0], ij[:, 1]), points[:, 2])
+    np.minimum.at(bottom, (ij[:, 0], ij[:, 1]), points[:, 2])
+    # [X, Y] height range of the WLI points in a cell, NaN = void: a point anywhere in it is on
+    # the surface (a slope or a wall spans a range within one cell)
+    self.top = np.where(np.isfinite(top), top, np.nan)
+    self.bottom = np.where(np.isfinite(bottom), bottom, np.nan)
+    measured = ndimage.binary_closing(np.isfinite(self.top), iterations=FOOTPRINT_CLOSING)
+    self.footprint = ndimage.binary_fill_holes(measured)  # [X, Y] inside the WLI's area
+
+  def _cells(self, points: np.ndarray) -> np.ndarray:
+    return np.floor((points[:, :2] - self.lo) / self.cell).astype(np.int64)
+
+  def _lookup(self, points: np.ndarray):
+    ij = self._cells(points)
+    ok = np.all((ij >= 0) & (ij < self.shape), axis=1)
+    inside = np.zeros(len(points), bool)
+    inside[ok] = self.footprint[ij[ok, 0], ij[ok, 1]]
+    return ij, inside
+
+  def cost(self, points: np.ndarray, gate: float) -> float:
+    """Mean height cost of `points` [N, 3] inside the footprint (1.0 when fewer than 10 are)."""
+    ij, inside = self._lookup(points)
+    if inside.sum() < 10:
+      return 1.0
+    z, k = points[inside, 2], (ij[inside, 0], ij[inside, 1])
+    r = np.maximum(np.maximum(self.bottom[k] - z, z - self.top[k]), 0.0)
+    return float(np.mean(np.where(np.isfinite(r), np.minimum(r / gate, 1.0) ** 2, VOID_COST)))
+
+  def coverage(self, points: np.ndarray) -> float:
+    """Share of footprint cells within one cell of one of `points` [N, 3]."""
+    ij, inside = self._lookup(points)
+    hit = np.zeros(self.shape, bool)
+    hit[ij[inside, 0], ij[inside, 1]] = True
+    return float((ndimage.binary_dilation(hit) & self.footprint).sum() / self.footprint.sum())
 
 
 def robust_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -59,6 +132,22 @@ def _similarity(s: float, rot: np.ndarray, t: np.ndarray) -> np.ndarray:
   m = np.eye(4)
   m[:3, :3], m[:3, 3] = s * rot, t
   return m
+
+
+def _apply(S: np.ndarray, points: np.ndarray) -> np.ndarray:
+  return points @ S[:3, :3].T + S[:3, 3]
+
+
+def _scale_of(S: np.ndarray) -> float:
+  return float(np.cbrt(np.linalg.det(S[:3, :3])))
+
+
+def _rescaled(S: np.ndarray, factor: float, centre: np.ndarray) -> np.ndarray:
+  """S with its scale times `factor`, about the um-frame point `centre` [3]."""
+  out = S.copy()
+  out[:3, :3] *= factor
+  out[:3, 3] = factor * S[:3, 3] + (1 - factor) * centre
+  return out
 
 
 def _rot_to_z(v: np.ndarray) -> np.ndarray:
@@ -81,10 +170,20 @@ def _angle_deg(r0: np.ndarray, r1: np.ndarray) -> float:
   return float(np.degrees(np.arccos(np.clip((np.trace(r0.T @ r1) - 1) / 2, -1.0, 1.0))))
 
 
-def _refine(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
+def _rigid_refit(points: np.ndarray, S: np.ndarray, tgt, gates) -> np.ndarray:
+  """S followed by rigid point-to-plane ICP of `points` [N, 3] (SfM frame) onto `tgt`, one round
+  per gate of `gates` (um) -> [4, 4]."""
+  moved = register.to_cloud(_apply(S, points))
+  T = np.eye(4)
+  for gate in gates:
+    T = np.asarray(register.icp(moved, tgt, T, gate).transformation)
+  return T @ S
+
+
+def _finish(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
   """Scaled point-to-point ICP with a halving gate down to `final_gate`, then a rigid
   point-to-plane ICP at the found scale -> (S [4, 4], open3d result of the last ICP)."""
-  gate = seed_gate * GATE_SHRINK
+  gate = seed_gate
   while True:
     gate = max(gate * GATE_SHRINK, final_gate)
     res = register.icp(src, tgt, S, gate, point_to_plane=False, with_scaling=True,
@@ -100,97 +199,131 @@ def _refine(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
   return np.asarray(res.transformation) @ S, res
 
 
-def _fitness_at_scale(src, tgt, S: np.ndarray, factor: float, centre: np.ndarray,
-                      first_gate: float, final_gate: float) -> float:
-  """Fitness of the similarity S with its scale times `factor` (about `centre`, [3]) after a
-  rigid point-to-plane refit whose gate halves from `first_gate` down to `final_gate`."""
-  Sf = S.copy()
-  Sf[:3, :3] *= factor
-  Sf[:3, 3] = factor * S[:3, 3] + (1 - factor) * centre
-  scaled = o3d.geometry.PointCloud(src).transform(Sf)
-  T, gate = np.eye(4), first_gate
-  while True:
-    res = register.icp(scaled, tgt, T, max(gate, final_gate), max_iterations=50)
-    T = np.asarray(res.transformation)
-    if gate <= final_gate:
-      return float(res.fitness)
-    gate *= GATE_SHRINK
+def _distinct(cands: list, limit: int) -> list:
+  """The first `limit` of `cands` [(cost, scale, S, seed)], best first, that differ in turn or
+  scale from every earlier one kept."""
+  kept = []
+  for c in cands:
+    r = c[2][:3, :3] / c[1]
+    if all(_angle_deg(r, k[2][:3, :3] / k[1]) > DISTINCT_DEG
+           or abs(np.log(c[1] / k[1])) > DISTINCT_LOG_SCALE for k in kept):
+      kept.append(c)
+    if len(kept) == limit:
+      break
+  return kept
+
+
+def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, gate: float,
+                  centre: np.ndarray):
+  """1-D search of the log scale of S (grid, then golden section), each scale with a rigid refit
+  -> (height cost, S) of the best."""
+  cache = {}
+
+  def cost(u: float):
+    if u not in cache:
+      Su = _rigid_refit(p_om, _rescaled(S, float(np.exp(u)), centre), tgt, gates)
+      cache[u] = (hm.cost(_apply(Su, p_om), gate), Su)
+    return cache[u][0]
+
+  grid = np.linspace(-SCALE_SEARCH, SCALE_SEARCH, SCALE_GRID)
+  i = int(np.argmin([cost(u) for u in grid]))
+  lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, SCALE_GRID - 1)]
+  g = (np.sqrt(5) - 1) / 2
+  a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+  for _ in range(GOLDEN_STEPS):
+    if cost(a) < cost(b):
+      hi, b, a = b, a, hi - g * (b - lo)
+    else:
+      lo, a, b = a, b, lo + g * (hi - a)
+  return min(cache.values(), key=lambda c: c[0])
 
 
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
                     wli_voxel_um: float, om_forward: np.ndarray, min_fitness: float = 0.3,
-                    scene_dir: str = "SCENE_DIR") -> Alignment:
+                    scene_dir: str = "SCENE_DIR", wli_up=(0.0, 0.0, 1.0)) -> Alignment:
   """Similarity alignment of P_om onto P_wli (module docstring).
 
-  p_om: [N, 3] SfM frame; p_wli: [M, 3] um, world z up; wli_normals: [M, 3] unit normals of
-  P_wli; om_forward: [K, 3] the OM cameras' viewing directions in the SfM frame; wli_voxel_um:
-  spacing of P_wli. A final fitness below `min_fitness` is a UserError.
+  p_om: [N, 3] SfM frame; p_wli: [M, 3] um; wli_normals: [M, 3] unit normals of P_wli;
+  om_forward: [K, 3] the OM cameras' viewing directions in the SfM frame; wli_voxel_um: spacing of
+  P_wli; wli_up: [3] the sample's up direction in P_wli's frame. A final fitness below
+  `min_fitness` (share of SfM points within FINAL_GATE_VOXELS of P_wli) is a UserError.
   """
   if len(p_om) < 10:
     raise UserError(f"{scene_dir}/om: structure-from-motion left only {len(p_om)} reliable points; "
                     "take sharper photos of a textured surface")
+  # Work in a z-up copy of the WLI frame (`level`), map the result back at the end.
+  level = np.eye(4)
+  level[:3, :3] = _rot_to_z(np.asarray(wli_up, np.float64))
+  p_wli = _apply(level, p_wli)
+  wli_normals = wli_normals @ level[:3, :3].T
   c_om, r_om = robust_frame(p_om)
   c_wli, r_wli = robust_frame(p_wli)
   s0 = r_wli / r_om
-  src = register.to_cloud(p_om)
   tgt = register.to_cloud(p_wli, wli_normals)
-  # Seeds as similarities um_from_sfm.
-  seeds = []
   gv = r_wli * 2 / GLOBAL_VOXELS_ACROSS
+  tgt_coarse = tgt.voxel_down_sample(gv)
+  src_coarse = np.asarray(register.to_cloud(p_om).voxel_down_sample(gv / s0).points)
+  hm_coarse = HeightMap(p_wli, gv)
+  hm_cover = HeightMap(p_wli, 2 * gv)  # coverage cells of ~2 SfM point spacings
+  hm_fine = HeightMap(p_wli, FINE_CELL_VOXELS * wli_voxel_um)
+  fine_gate = FINE_GATE_VOXELS * wli_voxel_um
+  # Turns: about up from the cameras, and the FPFH one (x_um = g (s0 (x - c_om)) + c_wli).
   src_n = register.downsample(register.to_cloud((p_om - c_om) * s0), gv)
   tgt_n = register.downsample(register.to_cloud(p_wli - c_wli), gv)
-  g = np.asarray(register.global_register(src_n, tgt_n, gv).transformation)
-  # x_um = g (s0 (x - c_om)) + c_wli
-  seeds.append(("fpfh", _similarity(s0, g[:3, :3], g[:3, :3] @ (-s0 * c_om) + g[:3, 3] + c_wli)))
+  turns = [("fpfh", np.asarray(register.global_register(src_n, tgt_n, gv).transformation)[:3, :3])]
   up = _rot_to_z(-np.mean(om_forward, axis=0))
-  for k in range(YAW_STEPS):
-    rot = _rz(2 * np.pi * k / YAW_STEPS) @ up
-    seeds.append(("cameras", _similarity(s0, rot, c_wli - s0 * rot @ c_om)))
-  seed_gate = SEED_GATE_SPREADS * r_wli
-  # Seeds are refined and scored on P_wli at the global resolution: wide gates on the full cloud
-  # would cost seconds per ICP.
-  tgt_coarse = tgt.voxel_down_sample(gv)
-  score_gate = max(SCORE_GATE_VOXELS * wli_voxel_um, SCORE_GATE_COARSE_VOXELS * gv)
-  scored = []
-  for name, init in seeds:
-    res = register.icp(src, tgt_coarse, init, seed_gate, point_to_plane=False, with_scaling=True)
-    res = register.icp(src, tgt_coarse, res.transformation, seed_gate * GATE_SHRINK,
-                       point_to_plane=False, with_scaling=True)
-    score = o3d.pipelines.registration.evaluate_registration(src, tgt_coarse, score_gate,
-                                                             res.transformation)
-    scored.append((score.fitness, name, np.asarray(res.transformation)))
-  # A coarse score cannot tell a nearly symmetric sample from its turned copy; the best few
-  # seeds are therefore refined to the end and judged at the final gate.
-  scored.sort(key=lambda c: -c[0])
-  distinct = []  # seeds that converged to the same turn count once
-  for _, name, S0 in scored:
-    r0 = S0[:3, :3] / np.cbrt(np.linalg.det(S0[:3, :3]))
-    if all(_angle_deg(r0, r1) > DISTINCT_DEG for _, r1, _ in distinct):
-      distinct.append((name, r0, S0))
-  final = [_refine(src, tgt, S0, seed_gate, FINAL_GATE_VOXELS * wli_voxel_um) + (name,)
-           for name, _, S0 in distinct[:FINALISTS]]
-  S, res, seed = max(final, key=lambda c: (c[1].fitness, -c[1].inlier_rmse))
+  turns += [("cameras", _rz(2 * np.pi * k / YAW_STEPS) @ up) for k in range(YAW_STEPS)]
+  coarse_gates = [f * r_wli for f in SEED_GATES_SPREADS] + [SEED_GATE_VOXELS * gv]
+  cands = []  # (coarse cost, scale, S, seed, coverage)
+  for f in np.exp(np.arange(np.log(SCALE_RANGE[0]), np.log(SCALE_RANGE[1]), np.log(SCALE_STEP))):
+    s = s0 * f
+    for name, rot in turns:
+      S = _rigid_refit(src_coarse, _similarity(s, rot, c_wli - s * rot @ c_om), tgt_coarse,
+                       coarse_gates)
+      moved = _apply(S, src_coarse)
+      cands.append((hm_coarse.cost(moved, SEED_GATE_VOXELS * gv), _scale_of(S), S, name,
+                    hm_cover.coverage(moved)))
+  best_cover = max(c[4] for c in cands)
+  cands = sorted((c for c in cands if c[4] >= COVERAGE_SHARE * best_cover), key=lambda c: c[0])
+  fine_gates = [4 * gv, 2 * gv, 8 * wli_voxel_um, fine_gate]
+  finals = []
+  for _, _, S0, name, _ in _distinct(cands, FINALISTS):
+    cost, S = _scale_search(p_om, S0, tgt, hm_fine, fine_gates, fine_gate, c_wli)
+    if hm_cover.coverage(_apply(S, p_om)) < COVERAGE_SHARE * best_cover:
+      continue
+    finals.append((cost, S, name))
+  if not finals:
+    raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: no placement of the SfM points "
+                    "covers the WLI scans; check that the photos and scans show the same sample")
+  cost, S, seed = min(finals, key=lambda c: c[0])
   final_gate = FINAL_GATE_VOXELS * wli_voxel_um
-  scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-  aligned = o3d.geometry.PointCloud(src).transform(S)
-  residuals = np.asarray(aligned.compute_point_cloud_distance(tgt))
+  src = register.to_cloud(p_om)
+  S_fin, _ = _finish(src, tgt, S, FINISH_SEED_VOXELS * wli_voxel_um, final_gate)
+  cost_fin = hm_fine.cost(_apply(S_fin, p_om), fine_gate)
+  if cost_fin <= cost:
+    S, cost = S_fin, cost_fin
+  res = o3d.pipelines.registration.evaluate_registration(src, tgt, final_gate, S)
   if res.fitness < min_fitness:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: only {res.fitness:.0%} of the SfM "
                     f"points lie within {final_gate:.3g} um of the WLI surface (need "
                     f"{min_fitness:.0%}); check that the photos and scans show the same sample")
-  # Scaled ICP on a mostly flat sample (a circuit board) is free to shrink P_om: fewer points then
-  # fall into WLI voids or beyond its footprint, so the fitness keeps rising as the scale drops
-  # and the converged scale (and with it the turn) is arbitrary. A determined scale is a peak of
-  # the fitness: scales SCALE_PROBE either side must fit clearly worse.
-  probes = [_fitness_at_scale(src, tgt, S, 1 + d, c_wli, 2 * SCALE_PROBE * r_wli, final_gate)
-            for d in (-SCALE_PROBE, SCALE_PROBE)]
-  if max(probes) > SCALE_PEAK_RATIO * res.fitness:
+  # A determined scale is a clear minimum of the height cost: scales SCALE_PROBE either side,
+  # each with its own rigid refit, must cost clearly more (a flat part leaves it free).
+  probes = [hm_fine.cost(_apply(_rigid_refit(p_om, _rescaled(S, 1 + d, c_wli), tgt, fine_gates),
+                                p_om), fine_gate) for d in (-SCALE_PROBE, SCALE_PROBE)]
+  if min(probes) < (1 + SCALE_PEAK_MARGIN) * cost:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
-                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as well "
-                    f"({max(probes):.0%} vs {res.fitness:.0%} within {final_gate:.3g} um), so the "
-                    "scale is not determined; scan a larger area with relief (WLI) or take photos "
-                    "with more overlap so that both clouds share distinct 3D structure")
-  return Alignment(S, scale, float(res.fitness), float(res.inlier_rmse), residuals, seed, s0)
+                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI heights about as well "
+                    f"(cost {min(probes):.3f} vs {cost:.3f}), so the scale is not determined; scan "
+                    "a larger area with relief (WLI) or take photos with more overlap so that both "
+                    "clouds share distinct 3D structure")
+  coverage = hm_cover.coverage(_apply(S, p_om))
+  S = np.linalg.inv(level) @ S
+  aligned = register.to_cloud(_apply(S, p_om))
+  residuals = np.asarray(aligned.compute_point_cloud_distance(
+      register.to_cloud(_apply(np.linalg.inv(level), p_wli))))
+  return Alignment(S, _scale_of(S), float(res.fitness), float(res.inlier_rmse), residuals, seed,
+                   s0, cost, coverage)
 
 
 def om_c2w_um(c2w_sfm: np.ndarray, S: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Step 1 registers the WLI scans (ofjax.associate.wli) and reconstructs the OM photos with SfM
 (ofjax.associate.sfm); step 2 maps the SfM frame into the WLI um frame with a similarity
-(ofjax.associate.align). The result's scene has every camera's c2w in um (OpenCV axes) in the WLI
+(ofjax.associate.align) and re-poses the photos on the WLI surface (ofjax.associate.ground). The result's scene has every camera's c2w in um (OpenCV axes) in the WLI
 world frame (scan 0, sample up), and the OM intrinsics of the SfM camera. Nothing here reads
 ground truth or writes into the scene directory; the CLI writes once everything succeeded.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ofjax import scene as scene_lib
-from ofjax.associate import align, sfm, wli
+from ofjax.associate import align, ground, sfm, wli
 from ofjax.errors import UserError
 
 
@@ -27,6 +27,7 @@ class Association:
   wli: wli.WLIRegistration
   sfm: sfm.SfMResult
   align: align.Alignment
+  ground: ground.Grounding
   seconds: dict[str, float]  # wall time of "wli", "sfm", "align", "total"
 
 
@@ -60,11 +61,15 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
   forward = np.array([c[:3, 2] for c in rec.c2w.values()])
   al = align.align_om_to_wli(rec.points, reg.points, reg.normals, reg.voxel_um, forward,
                              min_fitness, scene_dir)
+  c2w_um = {name: align.om_c2w_um(c, al.S) for name, c in rec.c2w.items()}
+  height, width = scene.om[0].shape
+  gr = ground.ground_cameras(c2w_um, rec.points @ al.S[:3, :3].T + al.S[:3, 3], rec.observations,
+                             rec.K, (width, height), reg.points, reg.normals, reg.voxel_um)
   t["align"] = time.perf_counter()
   wli_scans = [dataclasses.replace(s, c2w=c) for s, c in zip(scene.wli, reg.c2w)]
-  om = [dataclasses.replace(o, K=rec.K.copy(), c2w=align.om_c2w_um(rec.c2w[o.name], al.S))
-        if o.name in rec.c2w else dataclasses.replace(o, c2w=None) for o in scene.om]
+  om = [dataclasses.replace(o, K=rec.K.copy(), c2w=gr.c2w[o.name])
+        if o.name in gr.c2w else dataclasses.replace(o, c2w=None) for o in scene.om]
   posed = dataclasses.replace(scene, wli=wli_scans, om=om)
   seconds = {"wli": t["wli"] - t["start"], "sfm": t["sfm"] - t["wli"],
              "align": t["align"] - t["sfm"], "total": t["align"] - t["start"]}
-  return Association(posed, reg, rec, al, seconds)
+  return Association(posed, reg, rec, al, gr, seconds)

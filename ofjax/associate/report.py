@@ -2,8 +2,9 @@
 
 JSON keys: wli.pairs (ICP fitness / RMSE per scan pair, whether it is a pose-graph edge),
 om (photos registered, mean reprojection error, P_om size, intrinsics), align (estimated OM scale in
-um per SfM unit, fitness, residual WLI-to-OM distances: distance of every aligned P_om point to
-the nearest P_wli point), seconds. The PNG shows the pair-fitness matrix, the residual histogram
+um per SfM unit, fitness, height cost and footprint coverage of ofjax.associate.align, residual
+WLI-to-OM distances: distance of every aligned P_om point to the nearest P_wli point), ground
+(photos re-posed on the WLI surface, snapped points, rotation change per photo in degrees), seconds. The PNG shows the pair-fitness matrix, the residual histogram
 and a top view of P_wli, the aligned P_om and all cameras.
 """
 
@@ -44,7 +45,11 @@ def report_dict(a: Association, min_overlap: float) -> dict:
                             "cy": float(k[1, 2])}},
       "align": {"scale_um_per_sfm_unit": a.align.scale, "initial_scale": a.align.initial_scale,
                 "seed": a.align.seed, "fitness": a.align.fitness, "rmse_um": a.align.rmse_um,
+                "height_cost": a.align.height_cost, "coverage": a.align.coverage,
                 "residual_um": _stats(a.align.residuals_um)},
+      "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
+                 "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
+                 "change_deg": a.ground.change_deg},
       "seconds": a.seconds,
   }
 

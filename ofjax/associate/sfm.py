@@ -39,6 +39,8 @@ class SfMResult:
   K: np.ndarray  # [3, 3] shared intrinsics (pixels)
   points: np.ndarray  # [N, 3] P_om: filtered sparse points, SfM frame
   colors: np.ndarray  # [N, 3] uint8 RGB of P_om
+  observations: dict[str, tuple[np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2] pixel
+  # coordinates of its keypoints that belong to P_om, [k] index of each one's point in `points`)
   missing: list[str]  # photos the reconstruction did not register
   mean_reprojection_error_px: float  # over all points of the reconstruction
   num_points_total: int  # sparse points before filtering
@@ -108,15 +110,24 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
     cams.add(im.camera_id)
   missing = [o.name for o in images if o.name not in c2w]
   K_est = np.asarray(rec.cameras[next(iter(cams))].calibration_matrix(), np.float64)
-  pts, cols = [], []
+  pts, cols, seen = [], [], {}
   for p in rec.points3D.values():
     if p.track.length() >= MIN_TRACK_LENGTH and p.error <= MAX_POINT_ERROR_PX:
+      for el in p.track.elements:
+        seen.setdefault(el.image_id, []).append((el.point2D_idx, len(pts)))
       pts.append(p.xyz)
       cols.append(p.color)
+  observations = {}
+  for o in images:
+    im = by_name.get(f"{o.name}.png")
+    if im is not None:
+      obs = seen.get(im.image_id, [])
+      xy = np.array([im.points2D[k].xy for k, _ in obs], np.float64).reshape(-1, 2)
+      observations[o.name] = (xy, np.array([i for _, i in obs], np.int64))
   log.info("SfM: %d/%d photos, %d points (%d kept), %.1f s", len(c2w), len(images),
            rec.num_points3D(), len(pts), time.perf_counter() - t0)
   return SfMResult(c2w, K_est, np.asarray(pts, np.float64).reshape(-1, 3),
-                   np.asarray(cols, np.uint8).reshape(-1, 3), missing,
+                   np.asarray(cols, np.uint8).reshape(-1, 3), observations, missing,
                    float(rec.compute_mean_reprojection_error()), int(rec.num_points3D()),
                    time.perf_counter() - t0)
 
