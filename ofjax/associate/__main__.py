@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ofjax import fileio
 from ofjax import scene as scene_lib
-from ofjax.associate import report, sfm
+from ofjax.associate import align, report, sfm
 from ofjax.associate.pipeline import associate
 from ofjax.errors import UserError, cli
 
@@ -62,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
   print(f"ofjax: wrote {args.scene_dir / 'poses.json'}: {len(a.scene.wli)} WLI scans, "
         f"{len(a.sfm.c2w)}/{len(scene.om)} OM photos, OM scale {a.align.scale:.5g} um/unit, "
         f"{a.seconds['total']:.1f} s")
+  if a.align.turn_margin < align.TURN_WARN_MARGIN:
+    print(f"ofjax: warning: the OM photos fit the WLI scans almost as well turned by "
+          f"{a.align.turn_runner_up_deg:.0f} deg (height cost {a.align.height_cost:.3f}, "
+          f"{100 * a.align.turn_margin:.1f}% apart); the sample looks symmetric to the data, so "
+          "check the colours of the trained mesh", file=sys.stderr)
   if args.report:
     js, png = report.write_report(a, args.scene_dir / "association", args.min_overlap)
     print(f"ofjax: wrote {js} and {png}")

@@ -61,6 +61,7 @@ FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM point
 GATE_SHRINK = 0.5  # ICP gates halve between rounds
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
 SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
+TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
 
 
 @dataclasses.dataclass
@@ -74,6 +75,8 @@ class Alignment:
   initial_scale: float  # the spread-ratio estimate of s
   height_cost: float  # the fine height cost of S (module docstring), 0 = every point on H
   coverage: float  # share of the WLI footprint with an aligned SfM point nearby
+  turn_margin: float  # relative height-cost gap to the best solution turned > DISTINCT_DEG away
+  turn_runner_up_deg: float  # that solution's turn from the winner (NaN if there is none)
 
 
 class HeightMap:
@@ -295,7 +298,15 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   if not finals:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: no placement of the SfM points "
                     "covers the WLI scans; check that the photos and scans show the same sample")
-  cost, S, seed = min(finals, key=lambda c: c[0])
+  finals.sort(key=lambda c: c[0])
+  cost, S, seed = finals[0]
+  # A (nearly) symmetric sample fits a turned copy almost as well; the margin says how clearly
+  # the data chose the turn (the CLI warns when it is small).
+  turned = [(c, _angle_deg(S[:3, :3] / _scale_of(S), T[:3, :3] / _scale_of(T)))
+            for c, T, _ in finals[1:]]
+  turned = [t for t in turned if t[1] > DISTINCT_DEG]
+  margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, 1e-12), turned[0][1]) if turned \
+      else (float("inf"), float("nan"))
   final_gate = FINAL_GATE_VOXELS * wli_voxel_um
   src = register.to_cloud(p_om)
   S_fin, _ = _finish(src, tgt, S, FINISH_SEED_VOXELS * wli_voxel_um, final_gate)
@@ -323,7 +334,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   residuals = np.asarray(aligned.compute_point_cloud_distance(
       register.to_cloud(_apply(np.linalg.inv(level), p_wli))))
   return Alignment(S, _scale_of(S), float(res.fitness), float(res.inlier_rmse), residuals, seed,
-                   s0, cost, coverage)
+                   s0, cost, coverage, float(margin), float(runner_up_deg))
 
 
 def om_c2w_um(c2w_sfm: np.ndarray, S: np.ndarray) -> np.ndarray:

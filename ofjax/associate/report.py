@@ -46,6 +46,8 @@ def report_dict(a: Association, min_overlap: float) -> dict:
       "align": {"scale_um_per_sfm_unit": a.align.scale, "initial_scale": a.align.initial_scale,
                 "seed": a.align.seed, "fitness": a.align.fitness, "rmse_um": a.align.rmse_um,
                 "height_cost": a.align.height_cost, "coverage": a.align.coverage,
+                "turn_margin": a.align.turn_margin,
+                "turn_runner_up_deg": a.align.turn_runner_up_deg,
                 "residual_um": _stats(a.align.residuals_um)},
       "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
                  "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
