@@ -274,3 +274,56 @@ def test_cli_fails_cleanly_when_photos_do_not_register(tmp_path, capsys):
   err = capsys.readouterr().err.strip().splitlines()
   assert len(err) == 1 and err[0].startswith("ofjax: error:") and "/om" in err[0]
   assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing written
+
+
+def board(rng, half: float, spacing: float | None = None, n: int | None = None) -> np.ndarray:
+  """Points of a flat board with five 30 um boxes, on a grid (`spacing`) or random (`n`)."""
+  if spacing is not None:
+    g = np.arange(-half, half, spacing)
+    xy = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+  else:
+    xy = rng.uniform(-half, half, (n, 2))
+  z = np.zeros(len(xy))
+  for cx, cy, w, h in ((-60, 40, 50, 30), (70, 60, 40, 60), (20, -70, 80, 30), (-90, -60, 30, 30),
+                       (100, -20, 20, 40)):
+    z[(np.abs(xy[:, 0] - cx) < w / 2) & (np.abs(xy[:, 1] - cy) < h / 2)] = 30.0
+  return np.column_stack([xy, z])
+
+
+def test_height_cost_is_lowest_at_the_true_scale_where_fitness_prefers_shrinking():
+  """A flat board whose photos see more than the WLI: the one-sided ICP fitness (share of SfM
+  points near P_wli) rises when the SfM cloud shrinks, the height cost does not."""
+  rng = np.random.default_rng(5)
+  p_wli = board(rng, 125.0, spacing=PX)
+  p_wli = p_wli[rng.random(len(p_wli)) > 0.1]  # scattered voids
+  p_om = board(rng, 200.0, n=4000) + rng.normal(0, 0.3, (4000, 3))
+  tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_wli))
+  hm = align.HeightMap(p_wli, 2 * PX)
+
+  def shrunk(f):
+    return p_om * np.array([f, f, f])
+
+  def fitness(p):
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    return float(np.mean(np.asarray(pcd.compute_point_cloud_distance(tgt)) < 1.5 * PX))
+
+  assert fitness(shrunk(0.7)) > fitness(shrunk(1.0))
+  costs = {f: hm.cost(shrunk(f), 3 * PX) for f in (0.7, 0.9, 0.95, 1.0, 1.05, 1.1)}
+  assert min(costs, key=costs.get) == 1.0, costs
+  # float64 reference of the cost by a loop over points: the cell's height range, void, outside
+  ref, inside = [], 0
+  for p in shrunk(1.0)[:300]:
+    i, j = np.floor((p[:2] - hm.lo) / hm.cell).astype(int)
+    if not (0 <= i < hm.shape[0] and 0 <= j < hm.shape[1]) or not hm.footprint[i, j]:
+      continue
+    inside += 1
+    in_cell = np.all(np.floor((p_wli[:, :2] - hm.lo) / hm.cell).astype(int) == (i, j), axis=1)
+    zs = p_wli[in_cell, 2]
+    if len(zs) == 0:
+      ref.append(align.VOID_COST)
+    else:
+      r = max(zs.min() - p[2], p[2] - zs.max(), 0.0)
+      ref.append(min(r / (3 * PX), 1.0) ** 2)
+  assert inside > 50
+  assert hm.cost(shrunk(1.0)[:300], 3 * PX) == pytest.approx(np.mean(ref), abs=1e-12)
+
