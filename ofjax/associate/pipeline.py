@@ -2,9 +2,10 @@
 
 Step 1 registers the WLI scans (ofjax.associate.wli) and reconstructs the OM photos with SfM
 (ofjax.associate.sfm); step 2 maps the SfM frame into the WLI um frame with a similarity
-(ofjax.associate.align) and re-poses the photos on the WLI surface (ofjax.associate.ground). The result's scene has every camera's c2w in um (OpenCV axes) in the WLI
-world frame (scan 0, sample up), and the OM intrinsics of the SfM camera. Nothing here reads
-ground truth or writes into the scene directory; the CLI writes once everything succeeded.
+(ofjax.associate.align) and re-poses the photos on the WLI surface (ofjax.associate.ground). The
+result's scene has every camera's c2w in um (OpenCV axes) in the WLI world frame (scan 0, sample
+up), and the OM intrinsics of the SfM camera. Nothing here reads ground truth or writes into the
+scene directory; the CLI writes once everything succeeded.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ class Association:
   sfm: sfm.SfMResult
   align: align.Alignment
   ground: ground.Grounding
-  seconds: dict[str, float]  # wall time of "wli", "sfm", "align", "total"
+  seconds: dict[str, float]  # wall time of "wli", "sfm", "align" (step 2 with re-posing), "total"
 
 
 def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_overlap: float = 0.2,
