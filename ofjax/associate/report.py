@@ -2,7 +2,8 @@
 
 JSON keys: wli.pairs (ICP fitness / RMSE per scan pair, whether it is a pose-graph edge),
 om (photos registered, mean reprojection error, P_om size, intrinsics), align (estimated OM scale in
-um per SfM unit, fitness, height cost and footprint coverage of ofjax.associate.align, residual
+um per SfM unit, fitness, height cost, footprint coverage and turn margin (null when no turned
+solution was scored) of ofjax.associate.align, residual
 WLI-to-OM distances: distance of every aligned P_om point to the nearest P_wli point), ground
 (photos re-posed on the WLI surface, snapped points, rotation change per photo in degrees), seconds. The PNG shows the pair-fitness matrix, the residual histogram
 and a top view of P_wli, the aligned P_om and all cameras.
@@ -19,6 +20,11 @@ from ofjax import fileio, plots
 from ofjax.associate.pipeline import Association
 
 TOP_VIEW_POINTS = 20_000  # P_wli points drawn in the top view (subsampled for a light PNG)
+
+
+def _finite(x: float) -> float | None:
+  """x, or None (JSON null) where it is not finite: strict JSON has no Infinity or NaN."""
+  return float(x) if np.isfinite(x) else None
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:
@@ -46,8 +52,8 @@ def report_dict(a: Association, min_overlap: float) -> dict:
       "align": {"scale_um_per_sfm_unit": a.align.scale, "initial_scale": a.align.initial_scale,
                 "seed": a.align.seed, "fitness": a.align.fitness, "rmse_um": a.align.rmse_um,
                 "height_cost": a.align.height_cost, "coverage": a.align.coverage,
-                "turn_margin": a.align.turn_margin,
-                "turn_runner_up_deg": a.align.turn_runner_up_deg,
+                "turn_margin": _finite(a.align.turn_margin),
+                "turn_runner_up_deg": _finite(a.align.turn_runner_up_deg),
                 "residual_um": _stats(a.align.residuals_um)},
       "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
                  "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
