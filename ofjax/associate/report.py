@@ -2,11 +2,11 @@
 
 JSON keys: wli.pairs (ICP fitness / RMSE per scan pair, whether it is a pose-graph edge),
 om (photos registered, mean reprojection error, P_om size, intrinsics), align (estimated OM scale in
-um per SfM unit, fitness, height cost, footprint coverage and turn margin (null when no turned
-solution was scored) of ofjax.associate.align, residual
-WLI-to-OM distances: distance of every aligned P_om point to the nearest P_wli point), ground
-(photos re-posed on the WLI surface, snapped points, rotation change per photo in degrees), seconds. The PNG shows the pair-fitness matrix, the residual histogram
-and a top view of P_wli, the aligned P_om and all cameras.
+um per SfM unit, fitness, height cost, footprint coverage and turn margin - null when no turned
+solution was scored - of ofjax.associate.align, residual WLI-to-OM distances: distance of every
+aligned P_om point to the nearest P_wli point), ground (photos re-posed on the WLI surface,
+snapped points, rotation change per photo in degrees), seconds. The PNG shows the pair-fitness
+matrix, the residual histogram and a top view of P_wli, the aligned P_om and all cameras.
 """
 
 from __future__ import annotations
