@@ -22,10 +22,9 @@ plus FPFH + RANSAC global registration on scale-normalised clouds as one more tu
 candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coarse height map;
 the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
 height map); the best is finished with scaled point-to-point ICP and a rigid point-to-plane ICP,
-kept unless it raises the height cost by more than FINISH_COST_TOLERANCE. The result is
-rejected (UserError) when too few SfM points meet the WLI surface, or when scaling by SCALE_PROBE
-either way costs about as much (the scale is then not determined by the data, and wrong poses
-must not be written).
+kept only if the height cost does not get worse. The result is rejected (UserError) when too few
+SfM points meet the WLI surface, or when scaling by SCALE_PROBE either way costs about as much
+(the scale is then not determined by the data, and wrong poses must not be written).
 """
 
 from __future__ import annotations
@@ -60,9 +59,6 @@ FINISH_SEED_VOXELS = 8.0  # the scaled ICP finish starts with this gate in P_wli
 FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM points where the WLI
 # has voids pull on the scale)
 GATE_SHRINK = 0.5  # ICP gates halve between rounds
-FINISH_COST_TOLERANCE = 0.1  # the ICP finish is kept unless it raises the height cost by more:
-# the cost finds the basin, but its minimum is only a few tenths of a percent of scale sharp, and
-# the finish (fitted to every point near the surface, not to cells) is the finer estimate there
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
 SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
@@ -238,12 +234,10 @@ def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, ga
   g = (np.sqrt(5) - 1) / 2
   a, b = hi - g * (hi - lo), lo + g * (hi - lo)
   for _ in range(GOLDEN_STEPS):
-    if cost(a) < cost(b):  # the minimum is in [lo, b]: b becomes hi, a becomes b
-      hi, b = b, a
-      a = hi - g * (hi - lo)
-    else:  # the minimum is in [a, hi]
-      lo, a = a, b
-      b = lo + g * (hi - lo)
+    if cost(a) < cost(b):
+      hi, b, a = b, a, hi - g * (b - lo)
+    else:
+      lo, a, b = a, b, lo + g * (hi - a)
   return min(cache.values(), key=lambda c: c[0])
 
 
@@ -317,7 +311,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   src = register.to_cloud(p_om)
   S_fin, _ = _finish(src, tgt, S, FINISH_SEED_VOXELS * wli_voxel_um, final_gate)
   cost_fin = hm_fine.cost(_apply(S_fin, p_om), fine_gate)
-  if cost_fin <= (1 + FINISH_COST_TOLERANCE) * cost:
+  if cost_fin <= cost:
     S, cost = S_fin, cost_fin
   res = o3d.pipelines.registration.evaluate_registration(src, tgt, final_gate, S)
   if res.fitness < min_fitness:
