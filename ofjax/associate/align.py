@@ -53,8 +53,8 @@ FINALISTS = 6  # the best distinct candidates searched over the scale
 DISTINCT_DEG = 10.0  # candidates whose turns differ by less than this ...
 DISTINCT_LOG_SCALE = 0.15  # ... and whose scales differ by less than this (log) are one solution
 SCALE_SEARCH = 0.12  # the 1-D scale search spans +-this (log) around a finalist ...
-SCALE_GRID = 7  # ... on a grid of this many scales, then on a grid this many times finer
-SCALE_ROUNDS = 2  # around the parabola vertex of the last, this many grids in all
+SCALE_GRID = 7  # ... first on a grid of this many scales ...
+GOLDEN_STEPS = 10  # ... then golden-section steps around the best grid scale
 FINISH_SEED_VOXELS = 8.0  # the scaled ICP finish starts with this gate in P_wli voxels ...
 FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM points where the WLI
 # has voids pull on the scale)
@@ -218,8 +218,8 @@ def _distinct(cands: list, limit: int) -> list:
 
 def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, gate: float,
                   centre: np.ndarray):
-  """1-D search of the log scale of S (grids, each refined around the parabola vertex of the
-  last), each scale with a rigid refit -> (height cost, S) at the final vertex."""
+  """1-D search of the log scale of S (grid, then golden section), each scale with a rigid refit
+  -> (height cost, S) of the best."""
   cache = {}
 
   def cost(u: float):
@@ -229,20 +229,16 @@ def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, ga
     return cache[u][0]
 
   grid = np.linspace(-SCALE_SEARCH, SCALE_SEARCH, SCALE_GRID)
-  step = grid[1] - grid[0]
-  for _ in range(SCALE_ROUNDS):
-    costs = [cost(u) for u in grid]
-    i = int(np.clip(np.argmin(costs), 1, len(grid) - 2))
-    # The cost is noisy at the scale of a cell, so the minimum is the vertex of the parabola
-    # through the best grid scale and its neighbours (clipped to them), not a bracketing search.
-    c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
-    curv = c0 - 2 * c1 + c2
-    vertex = grid[i] + (0.5 * step * (c0 - c2) / curv if curv > 0 else 0.0)
-    vertex = float(np.clip(vertex, grid[i - 1], grid[i + 1]))
-    step /= SCALE_GRID - 1
-    grid = vertex + step * np.arange(-(SCALE_GRID // 2), SCALE_GRID // 2 + 1)
-  cost(vertex)
-  return cache[vertex]
+  i = int(np.argmin([cost(u) for u in grid]))
+  lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, SCALE_GRID - 1)]
+  g = (np.sqrt(5) - 1) / 2
+  a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+  for _ in range(GOLDEN_STEPS):
+    if cost(a) < cost(b):
+      hi, b, a = b, a, hi - g * (b - lo)
+    else:
+      lo, a, b = a, b, lo + g * (hi - a)
+  return min(cache.values(), key=lambda c: c[0])
 
 
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
