@@ -11,9 +11,9 @@ circuit board) a shrunk, turned copy fits as well as the truth. The criterion he
 heights instead: an SfM point inside the WLI footprint costs min(r / gate, 1)^2, with r how far
 its height lies outside the range of the WLI heights in its cell (a point over a WLI void costs
 VOID_COST, points outside the footprint nothing), so a board point moved onto a component top
-pays in full. A candidate must also cover the footprint: the share of
-footprint cells with an SfM point nearby must be close to the best candidate's, which rules out
-solutions that slide most of P_om off the footprint to hide it.
+pays in full. A candidate must also cover the footprint: the share of footprint cells with an SfM
+point nearby must be close to the best candidate's, which rules out solutions that slide most of
+P_om off the footprint to hide it.
 
 Search: the OM cameras look down on the sample, so their mean viewing direction fixes up in the
 SfM frame; the turn about up (every 15 degrees) and the scale (a log grid around the ratio of the
@@ -54,7 +54,7 @@ DISTINCT_DEG = 10.0  # candidates whose turns differ by less than this ...
 DISTINCT_LOG_SCALE = 0.15  # ... and whose scales differ by less than this (log) are one solution
 SCALE_SEARCH = 0.12  # the 1-D scale search spans +-this (log) around a finalist ...
 SCALE_GRID = 7  # ... first on a grid of this many scales ...
-GOLDEN_STEPS = 10  # ... then golden-section steps around the best grid scale
+GOLDEN_STEPS = 10  # ... then this many more probes near the best grid scale (_scale_search)
 FINISH_SEED_VOXELS = 8.0  # the scaled ICP finish starts with this gate in P_wli voxels ...
 FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM points where the WLI
 # has voids pull on the scale)
@@ -62,6 +62,7 @@ GATE_SHRINK = 0.5  # ICP gates halve between rounds
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
 SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
+COST_FLOOR = 1e-12  # keeps the relative turn margin finite when the best cost is 0 (exact data)
 
 
 @dataclasses.dataclass
@@ -203,8 +204,8 @@ def _finish(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
 
 
 def _distinct(cands: list, limit: int) -> list:
-  """The first `limit` of `cands` [(cost, scale, S, seed)], best first, that differ in turn or
-  scale from every earlier one kept."""
+  """The first `limit` of `cands` [(cost, scale, S, seed, coverage)], best first, that differ in
+  turn or scale from every earlier one kept."""
   kept = []
   for c in cands:
     r = c[2][:3, :3] / c[1]
@@ -218,8 +219,8 @@ def _distinct(cands: list, limit: int) -> list:
 
 def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, gate: float,
                   centre: np.ndarray):
-  """1-D search of the log scale of S (grid, then golden section), each scale with a rigid refit
-  -> (height cost, S) of the best."""
+  """1-D search of the log scale of S (a grid, then GOLDEN_STEPS probes near its minimum), each
+  scale with a rigid refit -> (height cost, S) of the best scale probed."""
   cache = {}
 
   def cost(u: float):
@@ -310,7 +311,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   turned = [(c, _angle_deg(S[:3, :3] / _scale_of(S), T[:3, :3] / _scale_of(T)))
             for c, T, _ in finals[1:]]
   turned = [t for t in turned if t[1] > DISTINCT_DEG]
-  margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, 1e-12), turned[0][1]) if turned \
+  margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, COST_FLOOR), turned[0][1]) if turned \
       else (float("inf"), float("nan"))
   final_gate = FINAL_GATE_VOXELS * wli_voxel_um
   src = register.to_cloud(p_om)
@@ -333,11 +334,11 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
                     f"(cost {min(probes):.3f} vs {cost:.3f}), so the scale is not determined; scan "
                     "a larger area with relief (WLI) or take photos with more overlap so that both "
                     "clouds share distinct 3D structure")
-  coverage = hm_cover.coverage(_apply(S, p_om))
+  moved = _apply(S, p_om)
+  coverage = hm_cover.coverage(moved)
+  # Distances do not change when the level turn is undone, so they are taken in its frame.
+  residuals = np.asarray(register.to_cloud(moved).compute_point_cloud_distance(tgt))
   S = np.linalg.inv(level) @ S
-  aligned = register.to_cloud(_apply(S, p_om))
-  residuals = np.asarray(aligned.compute_point_cloud_distance(
-      register.to_cloud(_apply(np.linalg.inv(level), p_wli))))
   return Alignment(S, _scale_of(S), float(res.fitness), float(res.inlier_rmse), residuals, seed,
                    s0, cost, coverage, float(margin), float(runner_up_deg))
 

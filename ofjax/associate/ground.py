@@ -22,6 +22,8 @@ import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
 
+from ofjax.associate.evaluate import rotation_deg
+
 ROUNDS = 3  # snap -> re-pose -> re-triangulate rounds (the change is < 0.1 degree after 3)
 SNAP_GATE_VOXELS = 3.0  # SfM points farther than this from P_wli (voids, beyond the scans) are
 # not snapped and take no part in re-posing
@@ -109,8 +111,5 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
       poses[name] = np.linalg.inv(w2c)
       reposed.add(name)
     points = triangulate(tracks, poses, K, len(points))
-  change = {}
-  for name in poses:
-    r = c2w[name][:3, :3].T @ poses[name][:3, :3]
-    change[name] = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
+  change = {name: rotation_deg(poses[name][:3, :3], c2w[name][:3, :3]) for name in poses}
   return Grounding(poses, sorted(reposed), snapped, change)
