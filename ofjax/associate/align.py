@@ -21,8 +21,8 @@ clouds' robust spreads, which underestimates when the photos see more than the W
 plus FPFH + RANSAC global registration on scale-normalised clouds as one more turn. Each
 candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coarse height map;
 the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
-height map); the best is finished with scaled point-to-point ICP and a rigid point-to-plane ICP,
-kept only if the height cost does not get worse. The result is rejected (UserError) when too few
+height map); the best is polished by robust point-to-plane least squares with scaling (`_polish`),
+which sets the final scale, tilt and offset more finely than the height cost's cells. The result is rejected (UserError) when too few
 SfM points meet the WLI surface, or when scaling by SCALE_PROBE either way costs about as much
 (the scale is then not determined by the data, and wrong poses must not be written).
 """
@@ -34,6 +34,8 @@ import dataclasses
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from ofjax.associate import register
 from ofjax.errors import UserError
@@ -53,12 +55,14 @@ FINALISTS = 6  # the best distinct candidates searched over the scale
 DISTINCT_DEG = 10.0  # candidates whose turns differ by less than this ...
 DISTINCT_LOG_SCALE = 0.15  # ... and whose scales differ by less than this (log) are one solution
 SCALE_SEARCH = 0.12  # the 1-D scale search spans +-this (log) around a finalist ...
-SCALE_GRID = 7  # ... first on a grid of this many scales ...
-GOLDEN_STEPS = 10  # ... then this many more probes near the best grid scale (_scale_search)
-FINISH_SEED_VOXELS = 8.0  # the scaled ICP finish starts with this gate in P_wli voxels ...
-FINAL_GATE_VOXELS = 1.5  # ... and ends with this one (wider gates let SfM points where the WLI
-# has voids pull on the scale)
-GATE_SHRINK = 0.5  # ICP gates halve between rounds
+SCALE_GRID = 7  # ... on a grid of this many scales (4% apart), which the polish then refines
+POLISH_GATES_VOXELS = (3.0, 2.0, 1.5)  # the scaled point-to-plane polish's pairing gates (P_wli
+# voxels); the last is also the final fitness gate (wider gates let SfM points where the WLI has
+# voids pull on the fit)
+POLISH_ITERATIONS = 30  # Gauss-Newton steps per gate at most ...
+POLISH_TOL = 1e-7  # ... ending early when the step (rad, SfM-free um-relative units) is below this
+POLISH_MIN_PAIRS = 20  # fewer weighted pairs than this leave the similarity as it is
+DAMPING = 1e-9  # keeps the 7x7 normal equations solvable when a direction has no support
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
 SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
@@ -184,23 +188,41 @@ def _rigid_refit(points: np.ndarray, S: np.ndarray, tgt, gates) -> np.ndarray:
   return T @ S
 
 
-def _finish(src, tgt, S: np.ndarray, seed_gate: float, final_gate: float):
-  """Scaled point-to-point ICP with a halving gate down to `final_gate`, then a rigid
-  point-to-plane ICP at the found scale -> (S [4, 4], open3d result of the last ICP)."""
-  gate = seed_gate
-  while True:
-    gate = max(gate * GATE_SHRINK, final_gate)
-    res = register.icp(src, tgt, S, gate, point_to_plane=False, with_scaling=True,
-                       max_iterations=100)
-    S = np.asarray(res.transformation)
-    if gate <= final_gate:
-      break
-  # Point-to-point pairs a sparse SfM point with the nearest WLI sample, not the surface, which
-  # tilts the fit by a few tenths of a degree; a last rigid point-to-plane ICP at the found
-  # scale removes that (open3d has no point-to-plane estimation with scaling).
-  scaled = o3d.geometry.PointCloud(src).transform(S)
-  res = register.icp(scaled, tgt, np.eye(4), final_gate, max_iterations=100)
-  return np.asarray(res.transformation) @ S, res
+def _polish(p_om: np.ndarray, S: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
+            tree: cKDTree, hm: HeightMap, voxel: float) -> np.ndarray:
+  """Robust point-to-plane alignment with scaling: the similarity S' = D S minimising
+  sum_i rho(n_i . (S' p_i - q_i)) over SfM points p_i inside the WLI footprint (hm) paired with
+  their nearest P_wli point q_i (normal n_i) within each gate of POLISH_GATES_VOXELS; rho is
+  Tukey's biweight with its cut at the gate. Gauss-Newton over D = (rotation vector w,
+  translation t, log scale u) linearised about the moved points' median c:
+  d r_i = ((x_i - c) x n_i) . w + n_i . t + (n_i . (x_i - c)) u.
+  (open3d's point-to-plane estimation has no scale, and point-to-point pairs a sparse SfM point
+  with the nearest WLI sample rather than the surface, which biases scale and tilt.)
+
+  p_om: [N, 3] SfM frame; S: [4, 4] start; p_wli, wli_normals: [M, 3] z-up frame; -> [4, 4].
+  """
+  c = np.median(_apply(S, p_om), axis=0)
+  for gate in POLISH_GATES_VOXELS:
+    cut = gate * voxel
+    for _ in range(POLISH_ITERATIONS):
+      x = _apply(S, p_om)
+      _, inside = hm._lookup(x)
+      d, j = tree.query(x, distance_upper_bound=cut)
+      use = inside & np.isfinite(d)
+      xc, n = x[use] - c, wli_normals[j[use]]
+      r = np.einsum("ij,ij->i", n, xc - (p_wli[j[use]] - c))
+      w = np.where(np.abs(r) < cut, (1 - (r / cut) ** 2) ** 2, 0.0)
+      if np.count_nonzero(w) < POLISH_MIN_PAIRS:
+        return S
+      J = np.column_stack([np.cross(xc, n), n, np.einsum("ij,ij->i", n, xc)])  # [K, 7]
+      step = np.linalg.solve(J.T @ (J * w[:, None]) + DAMPING * np.eye(7), -J.T @ (w * r))
+      D = _similarity(float(np.exp(step[6])), Rotation.from_rotvec(step[:3]).as_matrix(),
+                      np.zeros(3))
+      D[:3, 3] = c + step[3:6] - D[:3, :3] @ c
+      S = D @ S
+      if np.linalg.norm(step) < POLISH_TOL:
+        break
+  return S
 
 
 def _distinct(cands: list, limit: int) -> list:
@@ -219,32 +241,14 @@ def _distinct(cands: list, limit: int) -> list:
 
 def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, gate: float,
                   centre: np.ndarray):
-  """1-D search of the log scale of S (a grid, then GOLDEN_STEPS probes near its minimum), each
-  scale with a rigid refit -> (height cost, S) of the best scale probed."""
-  cache = {}
-
-  def cost(u: float):
-    if u not in cache:
-      Su = _rigid_refit(p_om, _rescaled(S, float(np.exp(u)), centre), tgt, gates)
-      cache[u] = (hm.cost(_apply(Su, p_om), gate), Su)
-    return cache[u][0]
-
-  grid = np.linspace(-SCALE_SEARCH, SCALE_SEARCH, SCALE_GRID)
-  i = int(np.argmin([cost(u) for u in grid]))
-  lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, SCALE_GRID - 1)]
-  g = (np.sqrt(5) - 1) / 2
-  a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-  # Known defect: this update does not keep the golden-section bracket (the new probe can land
-  # outside it), so these are GOLDEN_STEPS extra probes near the grid minimum, not a converging
-  # search; the best probe is returned. A correct search lands 0.6% off the true scale on the
-  # test's blocks scene, past its 0.5% bound (issue 5's notes): the height cost is not sharper
-  # than that, and the fix belongs with a finer scale criterion.
-  for _ in range(GOLDEN_STEPS):
-    if cost(a) < cost(b):
-      hi, b, a = b, a, hi - g * (b - lo)
-    else:
-      lo, a, b = a, b, lo + g * (hi - a)
-  return min(cache.values(), key=lambda c: c[0])
+  """1-D search of the log scale of S on a grid of SCALE_GRID scales, each with a rigid refit ->
+  (height cost, S) of the best (the polish refines it: the height cost's cells are too coarse to
+  fix the scale to better than a few tenths of a percent)."""
+  tried = []
+  for u in np.linspace(-SCALE_SEARCH, SCALE_SEARCH, SCALE_GRID):
+    Su = _rigid_refit(p_om, _rescaled(S, float(np.exp(u)), centre), tgt, gates)
+    tried.append((hm.cost(_apply(Su, p_om), gate), Su))
+  return min(tried, key=lambda c: c[0])
 
 
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
@@ -255,7 +259,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   p_om: [N, 3] SfM frame; p_wli: [M, 3] um; wli_normals: [M, 3] unit normals of P_wli;
   om_forward: [K, 3] the OM cameras' viewing directions in the SfM frame; wli_voxel_um: spacing of
   P_wli; wli_up: [3] the sample's up direction in P_wli's frame. A final fitness below
-  `min_fitness` (share of SfM points within FINAL_GATE_VOXELS of P_wli) is a UserError.
+  `min_fitness` (share of SfM points within POLISH_GATES_VOXELS[-1] of P_wli) is a UserError.
   """
   if len(p_om) < 10:
     raise UserError(f"{scene_dir}/om: structure-from-motion left only {len(p_om)} reliable points; "
@@ -313,12 +317,10 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   turned = [t for t in turned if t[1] > DISTINCT_DEG]
   margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, COST_FLOOR), turned[0][1]) if turned \
       else (float("inf"), float("nan"))
-  final_gate = FINAL_GATE_VOXELS * wli_voxel_um
+  final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
+  S = _polish(p_om, S, p_wli, wli_normals, cKDTree(p_wli), hm_fine, wli_voxel_um)
+  cost = hm_fine.cost(_apply(S, p_om), fine_gate)
   src = register.to_cloud(p_om)
-  S_fin, _ = _finish(src, tgt, S, FINISH_SEED_VOXELS * wli_voxel_um, final_gate)
-  cost_fin = hm_fine.cost(_apply(S_fin, p_om), fine_gate)
-  if cost_fin <= cost:
-    S, cost = S_fin, cost_fin
   res = o3d.pipelines.registration.evaluate_registration(src, tgt, final_gate, S)
   if res.fitness < min_fitness:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: only {res.fitness:.0%} of the SfM "
