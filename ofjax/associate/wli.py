@@ -90,13 +90,15 @@ def _rigid(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _register_pair(src: tuple, tgt: tuple, init: np.ndarray, coarse_gate: float,
                    fine_gate: float) -> o3d.pipelines.registration.RegistrationResult:
-  """Coarse-to-fine point-to-plane ICP; src/tgt are (coarse cloud, fine cloud)."""
+  """Coarse-to-fine point-to-plane ICP, then generalized ICP at the fine level (register.gicp);
+  src/tgt are (coarse cloud, fine cloud)."""
   coarse = register.icp(src[0], tgt[0], init, coarse_gate)
   mid = register.icp(src[0], tgt[0], coarse.transformation, coarse_gate / 3)
   # The fine level starts at twice its gate: straight from the coarse level, a one-voxel gate
   # can hold a shift of ~2 pixels on a periodic structure (sensor scene: 2.0 px -> 0.25 px).
   fine = register.icp(src[1], tgt[1], mid.transformation, 2 * fine_gate, max_iterations=100)
-  return register.icp(src[1], tgt[1], fine.transformation, fine_gate, max_iterations=100)
+  fine = register.icp(src[1], tgt[1], fine.transformation, fine_gate, max_iterations=100)
+  return register.gicp(src[1], tgt[1], fine.transformation, fine_gate)
 
 
 def _spanning_tree(n: int, edges: list[PairResult]) -> dict[int, PairResult]:
