@@ -369,3 +369,33 @@ def test_polish_recovers_scale_and_pose_by_point_to_plane():
     assert rot_deg((S[:3, :3] / s).T @ rot) <= tol_deg
     moved = p_om @ S[:3, :3].T + S[:3, 3]
     assert np.max(np.abs(moved - p_true)) <= 0.05 + 4 * noise
+
+
+def test_fit_cost_is_the_tukey_mean_and_peaks_at_the_true_scale():
+  """The scale check's cost equals a float64 loop over the points, and on the bumpy surface a 5%
+  rescale re-polished with the scale held costs clearly more than the truth (the refusal test of
+  align_om_to_wli passes there); holding the scale keeps it exactly."""
+  from scipy.spatial import cKDTree
+  rng = np.random.default_rng(12)
+  g = np.arange(-100.0, 100.0, PX)
+  p_wli, normals = bumps(np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2))
+  p_om, _ = bumps(rng.uniform(-90, 90, (1500, 2)))
+  p_om += rng.normal(0, 0.3, p_om.shape)
+  tree, hm, cut = cKDTree(p_wli), align.HeightMap(p_wli, 2 * PX), 1.5 * PX
+  cost = align._fit_cost(p_om, np.eye(4), p_wli, normals, tree, hm, cut)
+  ref = []
+  for p in p_om:
+    i, j = np.floor((p[:2] - hm.lo) / hm.cell).astype(int)
+    if not hm.footprint[i, j]:
+      continue
+    k = int(np.argmin(np.sum((p_wli - p) ** 2, axis=1)))
+    r = float(normals[k] @ (p - p_wli[k]))
+    near = np.linalg.norm(p - p_wli[k]) <= cut
+    ref.append(1 - (1 - (r / cut) ** 2) ** 3 if near and abs(r) < cut else 1.0)
+  assert cost == pytest.approx(np.mean(ref), abs=1e-12)
+  for d in (-align.SCALE_PROBE, align.SCALE_PROBE):
+    S = align._polish(p_om, align._rescaled(np.eye(4), 1 + d, np.zeros(3)), p_wli, normals, tree,
+                      hm, PX, free_scale=False)
+    assert np.cbrt(np.linalg.det(S[:3, :3])) == pytest.approx(1 + d, abs=1e-12)
+    probe = align._fit_cost(p_om, S, p_wli, normals, tree, hm, cut)
+    assert probe > (1 + align.SCALE_PEAK_MARGIN) * cost, (d, probe, cost)

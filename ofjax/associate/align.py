@@ -22,9 +22,10 @@ plus FPFH + RANSAC global registration on scale-normalised clouds as one more tu
 candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coarse height map;
 the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
 height map); the best is polished by robust point-to-plane least squares with scaling (`_polish`),
-which sets the final scale, tilt and offset more finely than the height cost's cells. The result is rejected (UserError) when too few
-SfM points meet the WLI surface, or when scaling by SCALE_PROBE either way costs about as much
-(the scale is then not determined by the data, and wrong poses must not be written).
+which sets the final scale, tilt and offset more finely than the height cost's cells. The result
+is rejected (UserError) when too few SfM points meet the WLI surface, or when scaling by
+SCALE_PROBE either way costs about as much in the polish's objective (the scale is then not
+determined by the data, and wrong poses must not be written).
 """
 
 from __future__ import annotations
@@ -62,9 +63,10 @@ POLISH_GATES_VOXELS = (3.0, 2.0, 1.5)  # the scaled point-to-plane polish's pair
 POLISH_ITERATIONS = 30  # Gauss-Newton steps per gate at most ...
 POLISH_TOL = 1e-7  # ... ending early when the step (rad, SfM-free um-relative units) is below this
 POLISH_MIN_PAIRS = 20  # fewer weighted pairs than this leave the similarity as it is
-DAMPING = 1e-9  # keeps the 7x7 normal equations solvable when a direction has no support
+DAMPING = 1e-6  # Tikhonov share of the normal equations' mean diagonal: bounds the step
+# along a direction the data do not fix (the scale over a flat board)
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
-SCALE_PEAK_MARGIN = 0.05  # ... where the height cost must be at least this much (relative) higher
+SCALE_PEAK_MARGIN = 0.05  # ... where the polish's objective must be at least this much (relative) higher
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
 COST_FLOOR = 1e-12  # keeps the relative turn margin finite when the best cost is 0 (exact data)
 
@@ -188,34 +190,46 @@ def _rigid_refit(points: np.ndarray, S: np.ndarray, tgt, gates) -> np.ndarray:
   return T @ S
 
 
+def _plane_pairs(x: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray, tree: cKDTree,
+                 hm: HeightMap, cut: float):
+  """Pairs of moved SfM points x [N, 3] inside the WLI footprint with their nearest P_wli point
+  within `cut` -> (inside [N] bool, paired [N] bool, normals [K, 3], signed point-to-plane
+  residuals [K]) for the K paired points."""
+  _, inside = hm._lookup(x)
+  d, j = tree.query(x, distance_upper_bound=cut)
+  paired = inside & np.isfinite(d)
+  n = wli_normals[j[paired]]
+  return inside, paired, n, np.einsum("ij,ij->i", n, x[paired] - p_wli[j[paired]])
+
+
 def _polish(p_om: np.ndarray, S: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
-            tree: cKDTree, hm: HeightMap, voxel: float) -> np.ndarray:
+            tree: cKDTree, hm: HeightMap, voxel: float, free_scale: bool = True) -> np.ndarray:
   """Robust point-to-plane alignment with scaling: the similarity S' = D S minimising
   sum_i rho(n_i . (S' p_i - q_i)) over SfM points p_i inside the WLI footprint (hm) paired with
   their nearest P_wli point q_i (normal n_i) within each gate of POLISH_GATES_VOXELS; rho is
   Tukey's biweight with its cut at the gate. Gauss-Newton over D = (rotation vector w,
   translation t, log scale u) linearised about the moved points' median c:
-  d r_i = ((x_i - c) x n_i) . w + n_i . t + (n_i . (x_i - c)) u.
+  d r_i = ((x_i - c) x n_i) . w + n_i . t + (n_i . (x_i - c)) u; `free_scale=False` holds u = 0.
   (open3d's point-to-plane estimation has no scale, and point-to-point pairs a sparse SfM point
   with the nearest WLI sample rather than the surface, which biases scale and tilt.)
 
   p_om: [N, 3] SfM frame; S: [4, 4] start; p_wli, wli_normals: [M, 3] z-up frame; -> [4, 4].
   """
   c = np.median(_apply(S, p_om), axis=0)
+  dof = 7 if free_scale else 6
   for gate in POLISH_GATES_VOXELS:
     cut = gate * voxel
     for _ in range(POLISH_ITERATIONS):
       x = _apply(S, p_om)
-      _, inside = hm._lookup(x)
-      d, j = tree.query(x, distance_upper_bound=cut)
-      use = inside & np.isfinite(d)
-      xc, n = x[use] - c, wli_normals[j[use]]
-      r = np.einsum("ij,ij->i", n, xc - (p_wli[j[use]] - c))
+      _, paired, n, r = _plane_pairs(x, p_wli, wli_normals, tree, hm, cut)
+      xc = x[paired] - c
       w = np.where(np.abs(r) < cut, (1 - (r / cut) ** 2) ** 2, 0.0)
       if np.count_nonzero(w) < POLISH_MIN_PAIRS:
         return S
-      J = np.column_stack([np.cross(xc, n), n, np.einsum("ij,ij->i", n, xc)])  # [K, 7]
-      step = np.linalg.solve(J.T @ (J * w[:, None]) + DAMPING * np.eye(7), -J.T @ (w * r))
+      J = np.column_stack([np.cross(xc, n), n, np.einsum("ij,ij->i", n, xc)])[:, :dof]
+      H = J.T @ (J * w[:, None])
+      step = np.zeros(7)
+      step[:dof] = np.linalg.solve(H + DAMPING * np.trace(H) / dof * np.eye(dof), -J.T @ (w * r))
       D = _similarity(float(np.exp(step[6])), Rotation.from_rotvec(step[:3]).as_matrix(),
                       np.zeros(3))
       D[:3, 3] = c + step[3:6] - D[:3, :3] @ c
@@ -223,6 +237,18 @@ def _polish(p_om: np.ndarray, S: np.ndarray, p_wli: np.ndarray, wli_normals: np.
       if np.linalg.norm(step) < POLISH_TOL:
         break
   return S
+
+
+def _fit_cost(p_om: np.ndarray, S: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
+              tree: cKDTree, hm: HeightMap, cut: float) -> float:
+  """The polish's objective as a mean over the SfM points inside the footprint: Tukey's loss
+  normalised to [0, 1] (1 - (1 - (r/cut)^2)^3 within the cut), 1 for a point with no WLI point
+  within `cut` (1.0 when fewer than POLISH_MIN_PAIRS are inside)."""
+  inside, _, _, r = _plane_pairs(_apply(S, p_om), p_wli, wli_normals, tree, hm, cut)
+  if inside.sum() < POLISH_MIN_PAIRS:
+    return 1.0
+  loss = np.where(np.abs(r) < cut, 1 - (1 - np.minimum(r / cut, 1) ** 2) ** 3, 1.0)
+  return float((loss.sum() + inside.sum() - len(r)) / inside.sum())
 
 
 def _distinct(cands: list, limit: int) -> list:
@@ -318,7 +344,8 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, COST_FLOOR), turned[0][1]) if turned \
       else (float("inf"), float("nan"))
   final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
-  S = _polish(p_om, S, p_wli, wli_normals, cKDTree(p_wli), hm_fine, wli_voxel_um)
+  tree = cKDTree(p_wli)
+  S = _polish(p_om, S, p_wli, wli_normals, tree, hm_fine, wli_voxel_um)
   cost = hm_fine.cost(_apply(S, p_om), fine_gate)
   src = register.to_cloud(p_om)
   res = o3d.pipelines.registration.evaluate_registration(src, tgt, final_gate, S)
@@ -326,14 +353,18 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: only {res.fitness:.0%} of the SfM "
                     f"points lie within {final_gate:.3g} um of the WLI surface (need "
                     f"{min_fitness:.0%}); check that the photos and scans show the same sample")
-  # A determined scale is a clear minimum of the height cost: scales SCALE_PROBE either side,
-  # each with its own rigid refit, must cost clearly more (a flat part leaves it free).
-  probes = [hm_fine.cost(_apply(_rigid_refit(p_om, _rescaled(S, 1 + d, c_wli), tgt, fine_gates),
-                                p_om), fine_gate) for d in (-SCALE_PROBE, SCALE_PROBE)]
-  if min(probes) < (1 + SCALE_PEAK_MARGIN) * cost:
+  # A determined scale is a clear minimum of the polish's objective: scales SCALE_PROBE either
+  # side, each with the other six parameters re-polished, must cost clearly more (a flat part
+  # leaves the scale free).
+  fit_args = (p_wli, wli_normals, tree, hm_fine)
+  cost_fit = _fit_cost(p_om, S, *fit_args, final_gate)
+  probes = [_fit_cost(p_om, _polish(p_om, _rescaled(S, 1 + d, c_wli), *fit_args, wli_voxel_um,
+                                    free_scale=False), *fit_args, final_gate)
+            for d in (-SCALE_PROBE, SCALE_PROBE)]
+  if min(probes) < (1 + SCALE_PEAK_MARGIN) * cost_fit:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
-                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI heights about as well "
-                    f"(cost {min(probes):.3f} vs {cost:.3f}), so the scale is not determined; scan "
+                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as well "
+                    f"(cost {min(probes):.3f} vs {cost_fit:.3f}), so the scale is not determined; scan "
                     "a larger area with relief (WLI) or take photos with more overlap so that both "
                     "clouds share distinct 3D structure")
   moved = _apply(S, p_om)
