@@ -61,12 +61,12 @@ POLISH_GATES_VOXELS = (3.0, 2.0, 1.5)  # the scaled point-to-plane polish's pair
 # voxels); the last is also the final fitness gate (wider gates let SfM points where the WLI has
 # voids pull on the fit)
 POLISH_ITERATIONS = 30  # Gauss-Newton steps per gate at most ...
-POLISH_TOL = 1e-7  # ... ending early when the step (rad, SfM-free um-relative units) is below this
+POLISH_TOL = 1e-7  # ... ending early when a step's norm (radians, um, log scale) is below this
 POLISH_MIN_PAIRS = 20  # fewer weighted pairs than this leave the similarity as it is
 DAMPING = 1e-6  # Tikhonov share of the normal equations' mean diagonal: bounds the step
 # along a direction the data do not fix (the scale over a flat board)
 SCALE_PROBE = 0.05  # the found scale is probed this far either side (relative) ...
-SCALE_PEAK_MARGIN = 0.05  # ... where the polish's objective must be at least this much (relative) higher
+SCALE_PEAK_MARGIN = 0.05  # ... where the polish's objective must be this much (relative) higher
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
 COST_FLOOR = 1e-12  # keeps the relative turn margin finite when the best cost is 0 (exact data)
 
@@ -247,7 +247,7 @@ def _fit_cost(p_om: np.ndarray, S: np.ndarray, p_wli: np.ndarray, wli_normals: n
   inside, _, _, r = _plane_pairs(_apply(S, p_om), p_wli, wli_normals, tree, hm, cut)
   if inside.sum() < POLISH_MIN_PAIRS:
     return 1.0
-  loss = np.where(np.abs(r) < cut, 1 - (1 - np.minimum(r / cut, 1) ** 2) ** 3, 1.0)
+  loss = np.where(np.abs(r) < cut, 1 - (1 - (r / cut) ** 2) ** 3, 1.0)
   return float((loss.sum() + inside.sum() - len(r)) / inside.sum())
 
 
@@ -363,9 +363,9 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
             for d in (-SCALE_PROBE, SCALE_PROBE)]
   if min(probes) < (1 + SCALE_PEAK_MARGIN) * cost_fit:
     raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
-                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as well "
-                    f"(cost {min(probes):.3f} vs {cost_fit:.3f}), so the scale is not determined; scan "
-                    "a larger area with relief (WLI) or take photos with more overlap so that both "
+                    f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as "
+                    f"well (cost {min(probes):.3f} vs {cost_fit:.3f}), so the scale is not "
+                    "determined; scan a larger area with relief (WLI) or take photos with more overlap so that both "
                     "clouds share distinct 3D structure")
   moved = _apply(S, p_om)
   coverage = hm_cover.coverage(moved)
