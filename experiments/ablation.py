@@ -210,12 +210,17 @@ def ratio_table(rows: dict, scenes: list[str]) -> str:
   return "\n".join(lines)
 
 
+def _value(rows: dict, scene: str, variant: str, key: str = "chamfer_um") -> float | None:
+  """One cell of the tables: `key`'s mean over the seeds, None where the job did not run."""
+  c = rows.get(scene, {}).get(variant)
+  return None if c is None else c[key][0]
+
+
 def targets(rows: dict, scenes: list[str]) -> list[str]:
   """The issue's 'done when' conditions, each met / missed (with the numbers) / not measured."""
   out = []
   def ch(s, v):
-    c = rows.get(s, {}).get(v)
-    return None if c is None else c["chamfer_um"][0]
+    return _value(rows, s, v)
 
   avgs = {v: average(rows, scenes, v) for v in VARIANTS}
   if None in avgs.values():
@@ -260,9 +265,9 @@ def targets(rows: dict, scenes: list[str]) -> list[str]:
 
 def differences(rows: dict, scenes: list[str], steps) -> list[str]:
   """Where our ratios differ from the paper's, stated from the rows (bullets with the numbers)."""
-  def val(s, v, key="chamfer_um"):
-    c = rows.get(s, {}).get(v)
-    return None if c is None or not np.isfinite(c[key][0]) else c[key][0]
+  def val(s, v, key="chamfer_um"):  # finite values only: "no surface" counts as missing here
+    x = _value(rows, s, v, key)
+    return x if x is not None and np.isfinite(x) else None
 
   out, budget = [], f"{steps} training steps" if steps else "the cpu preset's training steps"
   poisson = [val(s, "conventional", "chamfer_px") for s in scenes]

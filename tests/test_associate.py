@@ -15,6 +15,8 @@ import open3d as o3d
 import pytest
 import trimesh
 from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from ofjax import scene as scene_lib
 from ofjax import synth
@@ -345,8 +347,6 @@ def test_polish_recovers_scale_and_pose_by_point_to_plane():
   plane (curvature <= 0.04 /um, samples <= 0.7 um away: ~0.01 um, ~1e-4 of the 90 um lever); for
   sparse SfM-like points with 0.3 um noise and half of the WLI in voids it must stay far inside
   issue 5's OM targets (0.5%, 0.2 deg)."""
-  from scipy.spatial import cKDTree
-  from scipy.spatial.transform import Rotation
   rng = np.random.default_rng(11)
   g = np.arange(-100.0, 100.0, PX)
   p_wli, normals = bumps(np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2))
@@ -375,7 +375,6 @@ def test_fit_cost_is_the_tukey_mean_and_peaks_at_the_true_scale():
   """The scale check's cost equals a float64 loop over the points, and on the bumpy surface a 5%
   rescale re-polished with the scale held costs clearly more than the truth (the refusal test of
   align_om_to_wli passes there); holding the scale keeps it exactly."""
-  from scipy.spatial import cKDTree
   rng = np.random.default_rng(12)
   g = np.arange(-100.0, 100.0, PX)
   p_wli, normals = bumps(np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2))

@@ -346,7 +346,8 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
   tree = cKDTree(p_wli)
   S = _polish(p_om, S, p_wli, wli_normals, tree, hm_fine, wli_voxel_um)
-  cost = hm_fine.cost(_apply(S, p_om), fine_gate)
+  moved = _apply(S, p_om)
+  cost = hm_fine.cost(moved, fine_gate)
   src = register.to_cloud(p_om)
   res = o3d.pipelines.registration.evaluate_registration(src, tgt, final_gate, S)
   if res.fitness < min_fitness:
@@ -365,9 +366,8 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
                     f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as "
                     f"well (cost {min(probes):.3f} vs {cost_fit:.3f}), so the scale is not "
-                    "determined; scan a larger area with relief (WLI) or take photos with more overlap so that both "
-                    "clouds share distinct 3D structure")
-  moved = _apply(S, p_om)
+                    "determined; scan a larger area with relief (WLI) or take photos with more "
+                    "overlap so that both clouds share distinct 3D structure")
   coverage = hm_cover.coverage(moved)
   # Distances do not change when the level turn is undone, so they are taken in its frame.
   residuals = np.asarray(register.to_cloud(moved).compute_point_cloud_distance(tgt))

@@ -62,17 +62,17 @@ def global_register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
       reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE))
 
 
+def _criteria(max_iterations: int) -> reg.ICPConvergenceCriteria:
+  """Run to `max_iterations` unless fitness and RMSE stop changing (relative 1e-9)."""
+  return reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
+                                    max_iteration=max_iterations)
+
+
 def icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
-        max_distance: float, point_to_plane: bool = True, with_scaling: bool = False,
-        max_iterations: int = 50) -> reg.RegistrationResult:
-  """One ICP run: point-to-plane (rigid) or point-to-point (rigid or, with scaling, similarity)."""
-  if point_to_plane:
-    method = reg.TransformationEstimationPointToPlane()
-  else:
-    method = reg.TransformationEstimationPointToPoint(with_scaling)
-  return reg.registration_icp(source, target, max_distance, np.asarray(init, np.float64), method,
-                              reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
-                                                         max_iteration=max_iterations))
+        max_distance: float, max_iterations: int = 50) -> reg.RegistrationResult:
+  """One rigid point-to-plane ICP run (target needs normals)."""
+  return reg.registration_icp(source, target, max_distance, np.asarray(init, np.float64),
+                              reg.TransformationEstimationPointToPlane(), _criteria(max_iterations))
 
 
 def gicp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
@@ -83,6 +83,4 @@ def gicp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init:
   rotation error goes from 0.097 to 0.016 deg."""
   return reg.registration_generalized_icp(
       source, target, max_distance, np.asarray(init, np.float64),
-      reg.TransformationEstimationForGeneralizedICP(),
-      reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
-                                 max_iteration=max_iterations))
+      reg.TransformationEstimationForGeneralizedICP(), _criteria(max_iterations))
