@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ofjax import scene as scene_lib
 from ofjax import synth
 from ofjax.associate import evaluate
 from ofjax.associate.__main__ import main as associate_main
@@ -32,11 +31,7 @@ def run(name: str, resolution: str, out: Path) -> dict:
   seconds = time.perf_counter() - t0
   if rc != 0:
     return {"scene": name, "rc": rc, "seconds": seconds}
-  gt = scene_lib.load_poses(d / "ground_truth" / "poses.json")
-  truth = scene_lib.load_scene(d, poses=d / "ground_truth" / "poses.json")
-  size = float(np.linalg.norm(np.ptp(truth.wli_points(stride=4), axis=0)))
-  s = evaluate.pose_errors(scene_lib.load_poses(d / "poses.json"), gt, size)["summary"]
-  return {"scene": name, "rc": rc, "seconds": seconds, **s}
+  return {"scene": name, "rc": rc, "seconds": seconds, **evaluate.scene_pose_errors(d)}
 
 
 def main(argv=None) -> int:

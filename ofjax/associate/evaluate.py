@@ -90,3 +90,19 @@ def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
     summary["om"]["scale_error"] = abs(float(np.cbrt(np.linalg.det(_fit(src, dst, True)[:3, :3])))
                                        - 1.0)
   return {"summary": summary, "cameras": rows}
+
+
+def scene_pose_errors(scene_dir) -> dict:
+  """pose_errors' summary of SCENE_DIR/poses.json against the synthetic scene's ground truth.
+
+  The scene size is the diagonal of the true WLI points' bounding box (every 4th pixel).
+  """
+  from pathlib import Path
+
+  from ofjax import scene as scene_lib
+  d = Path(scene_dir)
+  gt_file = d / "ground_truth" / "poses.json"
+  truth = scene_lib.load_scene(d, poses=gt_file)
+  size = float(np.linalg.norm(np.ptp(truth.wli_points(stride=4), axis=0)))
+  return pose_errors(scene_lib.load_poses(d / "poses.json"), scene_lib.load_poses(gt_file),
+                     size)["summary"]
