@@ -52,15 +52,15 @@ def naive_field_fns(params, cfg: Config):
     feats = encoding._encode_plain(p["tables"], x, cfg.hash)
     return sdf_net.apply({"params": p["sdf"]}, jnp.concatenate([x, feats], -1))
 
-  def geometry_fn(x, view):
+  def geometry_fn(x):
     out = sdf_and_feature(params, x)
     # Points are independent, so the gradient of the sum is the per-point gradient.
     grad = jax.grad(lambda y: sdf_and_feature(params, y)[..., 0].sum())(x)
-    c_global, c_res = fields.colors(params, x, fields.unit(grad), out[..., 1:], view, cfg)
-    return out[..., 0], grad, c_global, c_res
+    return out[..., 0], grad, out[..., 1:]
 
   frozen = jax.lax.stop_gradient(params)
-  return geometry_fn, lambda x: sdf_and_feature(frozen, x)[..., 0]
+  return (geometry_fn, lambda x, n, f, v: fields.colors(params, x, n, f, v, cfg),
+          lambda x: sdf_and_feature(frozen, x)[..., 0])
 
 
 def parse_variant(spec: str) -> tuple[str, dict[str, dict]]:

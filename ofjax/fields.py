@@ -197,15 +197,14 @@ def unit(v):
 
 
 def field_fns(params, cfg: Config):
-  """The two point functions the renderer needs: (geometry_fn, sdf_fn); sdf_fn has no gradient."""
+  """The three point functions the renderer needs: (geometry_fn, color_fn, sdf_fn).
 
-  def geometry_fn(x, view):
-    sdf, grad, f = geometry(params, x, cfg)
-    c_global, c_res = colors(params, x, unit(grad), f, view, cfg)
-    return sdf, grad, c_global, c_res
-
+  geometry_fn(x) -> (sdf, grad, f) and color_fn(x, n, f, v) -> (c_global, c_res) are
+  differentiable; sdf_fn(x) -> sdf has no gradient (sample placement).
+  """
   frozen = jax.lax.stop_gradient(params)
-  return geometry_fn, lambda x: sdf_value(frozen, x, cfg)
+  return (lambda x: geometry(params, x, cfg), lambda x, n, f, v: colors(params, x, n, f, v, cfg),
+          lambda x: sdf_value(frozen, x, cfg))
 
 
 def global_color(params, x, cfg: Config):

@@ -118,19 +118,24 @@ def cos_anneal_ratio(step, rc: RenderConfig):
   return jnp.minimum(1.0, jnp.asarray(step, jnp.float32) / rc.cos_anneal_steps)
 
 
-def render_rays(geometry_fn, sdf_fn, o, d, near, far, key, inv_s, anneal, rc: RenderConfig,
-                guide=None, has_guide=None, randomize: bool = True):
+def render_rays(geometry_fn, color_fn, sdf_fn, o, d, near, far, key, inv_s, anneal,
+                rc: RenderConfig, guide=None, has_guide=None, randomize: bool = True,
+                n_uncolored: int = 0):
   """Renders rays with NeuS.
 
   Args:
-    geometry_fn: (x [R, N, 3], view [R, N, 3]) -> (sdf [R, N], grad [R, N, 3], c_global [R, N, 3],
-      c_res [R, N, 3]); differentiable.
+    geometry_fn: x [R, N, 3] -> (sdf [R, N], grad [R, N, 3], f [R, N, F]); differentiable.
+    color_fn: (x, n, f, view) [R', N, ...] -> (c_global [R', N, 3], c_res [R', N, 3]), n the unit
+      normal and view the unit ray direction; differentiable.
     sdf_fn: x [..., 3] -> sdf [...], used without gradient to place samples.
     o, d: [R, 3] origins and unit directions (normalised box).
     near, far: [R] ray segment inside the box.
     key: PRNG key for sample jitter.
     inv_s: NeuS's inverse standard deviation s; anneal: the cos-anneal ratio in [0, 1].
     guide, has_guide: [R] optional depth prior (e.g. the WLI depth) and where it exists.
+    n_uncolored: static; the first n_uncolored rays skip the colour networks and composite colour
+      0. Training passes its WLI rays (the batch's first rays), which no colour loss sees: their
+      colours cost a forward pass whose gradient is zero.
 
   Returns a dict:
     color, color_res, color_global: [R, 3] composited c, c_res and c_global; depth: [R] expected
@@ -152,7 +157,10 @@ def render_rays(geometry_fn, sdf_fn, o, d, near, far, key, inv_s, anneal, rc: Re
   mid = t + 0.5 * dt
   x = o[:, None] + d[:, None] * mid[..., None]
   view = jnp.broadcast_to(d[:, None], x.shape)
-  sdf, grad, c_global, c_res = geometry_fn(x, view)
+  sdf, grad, f = geometry_fn(x)
+  c_global, c_res = color_fn(*(a[n_uncolored:] for a in (x, unit(grad), f, view)))
+  pad = lambda c: jnp.concatenate([jnp.zeros((n_uncolored,) + c.shape[1:], c.dtype), c], 0)
+  c_global, c_res = (c_global, c_res) if n_uncolored == 0 else (pad(c_global), pad(c_res))
 
   # NeuS's section SDF estimate: the cos-anneal blends a relaxed slope (start) into the true one.
   true_cos = jnp.sum(view * grad, -1)

@@ -177,13 +177,15 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
 def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns):
   """Renders the batch and returns (total, {"loss/<name>": value, ...}).
 
-  field_fns: (params, cfg) -> (geometry_fn, sdf_fn) as fields.field_fns (benchmarks swap in a
-  nested-autodiff reference).
+  field_fns: (params, cfg) -> (geometry_fn, color_fn, sdf_fn) as fields.field_fns (benchmarks swap
+  in a nested-autodiff reference). The batch's WLI rays (its first ray_split(cfg)[0]) are not
+  coloured: only OM rays enter the colour losses.
   """
-  geometry_fn, sdf_fn = field_fns(params, cfg)
-  out = render.render_rays(geometry_fn, sdf_fn, batch["o"], batch["d"], batch["near"], batch["far"],
-                           key, fields.inv_s(params), render.cos_anneal_ratio(step, cfg.render),
-                           cfg.render, guide=batch["depth"], has_guide=batch["wli_ok"])
+  out = render.render_rays(*field_fns(params, cfg), batch["o"], batch["d"], batch["near"],
+                           batch["far"], key, fields.inv_s(params),
+                           render.cos_anneal_ratio(step, cfg.render), cfg.render,
+                           guide=batch["depth"], has_guide=batch["wli_ok"],
+                           n_uncolored=ray_split(cfg)[0])
   lc = cfg.loss
   terms = {
       "color": losses.color(out["color"], batch["rgb"], batch["om_ok"]),

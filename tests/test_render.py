@@ -77,10 +77,13 @@ def test_box_near_far_matches_slab_reference():
 @pytest.mark.parametrize("radius", [0.3, 0.6])
 def test_rendering_an_analytic_sphere_gives_its_depth(radius):
   """A perfect SDF |x| - r, sharp s and annealed cosine: the depth is the ray-sphere hit."""
-  def geometry_fn(x, view):
+  def geometry_fn(x):
     n = jnp.linalg.norm(x, axis=-1, keepdims=True)
+    return n[..., 0] - radius, x / n, jnp.zeros(x.shape[:-1] + (0,))
+
+  def color_fn(x, n, f, view):
     rgb = jnp.full(x.shape, 0.5)
-    return n[..., 0] - radius, x / n, rgb, jnp.zeros_like(rgb)
+    return rgb, jnp.zeros_like(rgb)
 
   sdf_fn = lambda x: jnp.linalg.norm(x, axis=-1) - radius
   rng = np.random.default_rng(3)
@@ -90,7 +93,7 @@ def test_rendering_an_analytic_sphere_gives_its_depth(radius):
   d = np.tile([0.0, 0.0, 1.0], (32, 1))
   near, far, _ = cameras.box_near_far(jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32))
   rc = RenderConfig(n_samples=64, n_importance=64, n_importance_steps=4)
-  out = render.render_rays(geometry_fn, sdf_fn, jnp.asarray(o, jnp.float32),
+  out = render.render_rays(geometry_fn, color_fn, sdf_fn, jnp.asarray(o, jnp.float32),
                            jnp.asarray(d, jnp.float32), near, far, jax.random.PRNGKey(0),
                            inv_s=4000.0, anneal=1.0, rc=rc, randomize=False)
   expected = 2.5 - np.sqrt(radius**2 - np.sum(xy**2, 1))
@@ -104,3 +107,41 @@ def test_cos_anneal_is_a_function_of_the_step():
   assert float(render.cos_anneal_ratio(0, rc)) == 0.0
   assert float(render.cos_anneal_ratio(50, rc)) == pytest.approx(0.5)
   assert float(render.cos_anneal_ratio(500, rc)) == 1.0
+
+
+def test_uncolored_rays_change_nothing_the_colour_losses_see():
+  """Skipping the colour networks on the first k rays (training's WLI rays) leaves every output and
+  every gradient of a loss on the other rays' colours exactly as rendering all rays would."""
+  k, n_rays = 5, 12
+  rng = np.random.default_rng(4)
+  o = jnp.asarray(np.concatenate([rng.uniform(-0.5, 0.5, (n_rays, 2)), np.full((n_rays, 1), -2.5)],
+                                 1), jnp.float32)
+  d = jnp.asarray(np.tile([0.0, 0.0, 1.0], (n_rays, 1)), jnp.float32)
+  near, far, _ = cameras.box_near_far(o, d)
+  target = jnp.asarray(rng.uniform(0, 1, (n_rays, 3)), jnp.float32)
+  rc = RenderConfig(n_samples=16, n_importance=8, n_importance_steps=2)
+
+  def render_with(theta, n_uncolored):
+    # A sphere of radius theta[0] whose colour depends on theta[1:] and on the normal and feature.
+    geometry_fn = lambda x: (jnp.linalg.norm(x, axis=-1) - theta[0], x * (1.0 + theta[0]),
+                             x[..., :1] * theta[1])
+    color_fn = lambda x, n, f, v: (jax.nn.sigmoid(n * theta[2] + f), jnp.tanh(v * theta[3]))
+    sdf_fn = lambda x: jnp.linalg.norm(x, axis=-1) - jax.lax.stop_gradient(theta[0])
+    return render.render_rays(geometry_fn, color_fn, sdf_fn, o, d, near, far,
+                              jax.random.PRNGKey(1), 50.0, 0.5, rc, n_uncolored=n_uncolored)
+
+  def loss(theta, n_uncolored):
+    out = render_with(theta, n_uncolored)
+    return (jnp.sum((out["color"][k:] - target[k:]) ** 2) + jnp.sum(out["color_res"][k:] ** 2)
+            + jnp.sum(out["depth"]) + jnp.sum(out["grad"] ** 2))
+
+  theta = jnp.asarray([0.4, 0.7, 1.3, 0.9], jnp.float32)
+  full, skipped = render_with(theta, 0), render_with(theta, k)
+  for name in full:
+    want = full[name][k:] if name.startswith("color") else full[name]
+    got = skipped[name][k:] if name.startswith("color") else skipped[name]
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=name)
+  for name in ("color", "color_res", "color_global"):
+    np.testing.assert_array_equal(np.asarray(skipped[name][:k]), 0.0, err_msg=name)
+  np.testing.assert_allclose(np.asarray(jax.grad(loss)(theta, k)),
+                             np.asarray(jax.grad(loss)(theta, 0)), rtol=1e-6, atol=1e-7)
