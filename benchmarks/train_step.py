@@ -186,7 +186,7 @@ def table(results: dict, info: dict) -> str:
     naive = r.get("naive_samples_per_s")
     lines.append(
         f"{spec:<34} {r['rays']:>5} {r['samples_per_ray']:>7} {r['it_per_s']:>7.2f} "
-        f"{r['samples_per_s']:>10.0f} {naive if naive is None else f'{naive:.0f}':>11} "
+        f"{r['samples_per_s']:>10.0f} {'-' if naive is None else f'{naive:.0f}':>11} "
         f"{r.get('speedup', float('nan')):>7.2f} {r['compile_s']:>9.1f} {r['peak_mem_mb']:>8.0f}")
   return "\n".join(lines)
 

@@ -323,6 +323,20 @@ def differences(rows: dict, scenes: list[str], steps) -> list[str]:
   return out
 
 
+def pose_source_table(summary: dict, scenes: list[str]) -> str:
+  """Chamfer on associated poses / on true poses, per variant and scene (issue 5 asks <= 1.5x)."""
+  est, true = summary.get("associate", {}), summary.get("true", {})
+  lines = ["| method | " + " | ".join(scenes) + " |", "|---" * (len(scenes) + 1) + "|"]
+  for v in VARIANTS:
+    cells = []
+    for sc in scenes:
+      a, b = _value(est, sc, v), _value(true, sc, v)
+      cells.append("-" if None in (a, b) else "no surface" if not np.isfinite(a / b) else
+                   f"{a / b:.2f}x ({a:.3g} / {b:.3g})")
+    lines.append(f"| {LABELS[v]} | " + " | ".join(cells) + " |")
+  return "\n".join(lines)
+
+
 def figure(path: Path, scene: str, records: list[dict]) -> None:
   """Per method (the first seed): the top-view render over the completeness heat map."""
   import matplotlib.image as mpimg
@@ -386,6 +400,11 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
               *differences(rows, scenes, settings["steps"]), "", "### The issue's targets", "",
               *targets(rows, scenes), "", "### Figures", ""]
     lines += [f"![{s}]({figures[(ps, s)]})" for s in scenes if (ps, s) in figures] + [""]
+  if {"associate", "true"} <= set(summary):
+    lines += ["## Associated against true poses", "",
+              "Chamfer on the poses `ofjax.associate` estimated / on the true poses (um in brackets; "
+              "on the default scene the means over its seeds):", "",
+              pose_source_table(summary, [s for s in scenes_all if s in summary["associate"]]), ""]
   lines += ["## Runs", "", "| poses | scene | variant | seed | wall s | stages (s) | machine | "
             "commit at start |", "|---|---|---|---|---|---|---|---|"]
   for r in records:
