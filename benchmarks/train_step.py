@@ -18,7 +18,7 @@ measured against their preset in one run, e.g.
   python benchmarks/train_step.py --presets cpu,cpu+render.wli_guided_samples=0 --no-naive
 
   python benchmarks/train_step.py [--json] [--presets cpu,paper] [--rays N] [--samples U,I]
-                                  [--steps K] [--no-naive]
+                                  [--steps K] [--no-naive] [--bound]
 """
 
 from __future__ import annotations
@@ -61,6 +61,23 @@ def naive_field_fns(params, cfg: Config):
   frozen = jax.lax.stop_gradient(params)
   return (geometry_fn, lambda x, n, f, v: fields.colors(params, x, n, f, v, cfg),
           lambda x: sdf_and_feature(frozen, x)[..., 0])
+
+
+def no_normal_field_fns(params, cfg: Config):
+  """The step's upper bound (--bound): the same fields with the normal branch removed.
+
+  d sdf / dx is replaced by zeros (no Jacobian, no nested derivative), so the step pays only for
+  the SDF values, colours, losses and Adam: what any way of computing normals adds comes on top.
+  The losses it trains are wrong (the eikonal term is constant); it is timed, never trained.
+  """
+  geometry_fn, color_fn, sdf_fn = fields.field_fns(params, cfg)
+
+  def geometry_without_normal(x):
+    feats = encoding.encode(params["tables"], x, cfg.hash)
+    out = fields._nets(cfg)[0].apply({"params": params["sdf"]}, jnp.concatenate([x, feats], -1))
+    return out[..., 0], jnp.zeros_like(x), out[..., 1:]
+
+  return geometry_without_normal, color_fn, sdf_fn
 
 
 def parse_variant(spec: str) -> tuple[str, dict[str, dict]]:
@@ -158,7 +175,7 @@ def benchmark_scene() -> scene_lib.Scene:
   return scene
 
 
-def run(specs: list[str], rays, samples, steps, naive: bool) -> dict:
+def run(specs: list[str], rays, samples, steps, naive: bool, bound: bool = False) -> dict:
   scene = benchmark_scene()
   results = {}
   for spec in specs:
@@ -172,6 +189,10 @@ def run(specs: list[str], rays, samples, steps, naive: bool) -> dict:
       ref = time_step(cfg, data, naive_field_fns, n)
       row.update(naive_samples_per_s=ref["samples_per_s"], naive_compile_s=ref["compile_s"],
                  speedup=fast["samples_per_s"] / ref["samples_per_s"])
+    if bound:
+      top = time_step(cfg, data, no_normal_field_fns, n)
+      row.update(bound_samples_per_s=top["samples_per_s"],
+                 fraction_of_bound=fast["samples_per_s"] / top["samples_per_s"])
     results[spec] = row
     print(f"# {spec}: {json.dumps(row)}", file=sys.stderr, flush=True)
   return results
@@ -181,13 +202,16 @@ def table(results: dict, info: dict) -> str:
   lines = [f"machine: {info['cpu']} ({info['cores']} cores); jax {info['jax']}, backend "
            f"{info['backend']}, devices {len(info['devices'])}",
            f"{'preset':<34} {'rays':>5} {'smp/ray':>7} {'it/s':>7} {'samples/s':>10} "
-           f"{'naive smp/s':>11} {'speedup':>7} {'compile s':>9} {'peak MB':>8}"]
+           f"{'naive smp/s':>11} {'speedup':>7} {'bound smp/s':>11} {'of bound':>8} "
+           f"{'compile s':>9} {'peak MB':>8}"]
+  fmt = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
   for spec, r in results.items():
-    naive = r.get("naive_samples_per_s")
     lines.append(
         f"{spec:<34} {r['rays']:>5} {r['samples_per_ray']:>7} {r['it_per_s']:>7.2f} "
-        f"{r['samples_per_s']:>10.0f} {'-' if naive is None else f'{naive:.0f}':>11} "
-        f"{r.get('speedup', float('nan')):>7.2f} {r['compile_s']:>9.1f} {r['peak_mem_mb']:>8.0f}")
+        f"{r['samples_per_s']:>10.0f} {fmt(r.get('naive_samples_per_s'), '.0f'):>11} "
+        f"{fmt(r.get('speedup'), '.2f'):>7} {fmt(r.get('bound_samples_per_s'), '.0f'):>11} "
+        f"{fmt(r.get('fraction_of_bound'), '.2f'):>8} {r['compile_s']:>9.1f} "
+        f"{r['peak_mem_mb']:>8.0f}")
   return "\n".join(lines)
 
 
@@ -201,6 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--samples", help="U,I: uniform and importance samples per ray (default: preset's)")
   p.add_argument("--steps", type=int, help="timed steps per preset (default: cpu 10, paper 4)")
   p.add_argument("--no-naive", action="store_true", help="skip the nested-autodiff reference step")
+  p.add_argument("--bound", action="store_true",
+                 help="also time the step with the normal branch removed (the upper bound)")
   return p
 
 
@@ -220,7 +246,7 @@ def main(argv=None) -> int:
       raise UserError(f"--{name} {value}: must be positive")
   specs = [s.strip() for s in args.presets.split(",") if s.strip()]
   info = machine()
-  results = run(specs, args.rays, samples, args.steps, not args.no_naive)
+  results = run(specs, args.rays, samples, args.steps, not args.no_naive, args.bound)
   if args.json:
     print(json.dumps({"machine": info, **results}, indent=2))
   else:

@@ -22,6 +22,9 @@ class HashConfig:
   base_resolution: int = 16  # resolution of the coarsest level N_min
   per_level_scale: float = 1.447269  # growth factor b between levels
   init_scale: float = 1e-4  # table entries start uniform in (-init_scale, init_scale)
+  # Level groups gathered (and, in the gradient, scattered) as separate ops: independent ops that
+  # XLA's CPU runtime may run on different cores. Must divide n_levels; the features are the same.
+  gather_groups: int = 1
 
 
 @dataclasses.dataclass(frozen=True)

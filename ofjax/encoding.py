@@ -21,7 +21,8 @@ Conventions (L levels, F features per level, T = 2**log2_table_size entries per 
 
 All levels and corners are gathered by one advanced index into the table viewed as [L*T, F] rows
 (level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one scatter-add, shared by
-the feature and the Jacobian cotangents. Layout (measured on XLA CPU, benchmarks/encoding.py):
+the feature and the Jacobian cotangents (HashConfig.gather_groups > 1 splits the levels into that
+many such gathers and scatters, independent ops for a multi-core CPU). Layout (measured on XLA CPU, benchmarks/encoding.py):
 the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit adds, so features and
 Jacobian come out point-major with no transpose; reductions over a non-minor axis, transposes
 fused into the interpolation, and gathering F scalars instead of one F-row were each slower.
@@ -78,9 +79,12 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
   n_levels, table_size, n_features = tables.shape
+  groups = cfg.gather_groups
   if n_levels * table_size >= 2 ** 31:
     raise ValueError(f"{n_levels} x {table_size} hash-table rows exceed int32 gather indices; "
                      "lower log2_table_size")
+  if groups < 1 or n_levels % groups:
+    raise ValueError(f"gather_groups {groups} must divide n_levels {n_levels}")
   u = (x.T + 1.0) * 0.5  # [3, N]
   inside = ((u >= 0.0) & (u <= 1.0)).astype(x.dtype)
   scale = jnp.asarray(level_scales(cfg), x.dtype)  # [L]
@@ -101,10 +105,14 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
   for bits in _CORNERS:
     tx, ty, tz = (terms[b][d] for d, b in enumerate(bits))
     index.append(jnp.where(dense, tx + ty + tz, tx ^ ty ^ tz) & np.uint32(table_size - 1))
-  level_offset = np.arange(n_levels, dtype=np.uint32) * np.uint32(table_size)
-  entry = jnp.stack(index) + level_offset  # [8, N, L] row of the [L*T, F] table
-  rows = jnp.asarray(tables).reshape(n_levels * table_size, n_features)
-  vals = rows.at[entry.astype(jnp.int32)].get(mode="promise_in_bounds")  # [8, N, L, F]
+  # Each group of n_levels / groups consecutive levels is one gather from its [levels*T, F] rows.
+  per_group = n_levels // groups
+  level_offset = np.arange(per_group, dtype=np.uint32) * np.uint32(table_size)
+  entry = jnp.stack(index).reshape(8, -1, groups, per_group) + level_offset  # row in its group
+  vals = jnp.concatenate([
+      part.reshape(per_group * table_size, n_features).at[entry[:, :, g].astype(jnp.int32)].get(
+          mode="promise_in_bounds")
+      for g, part in enumerate(jnp.split(jnp.asarray(tables), groups))], axis=2)  # [8, N, L, F]
   # One split, not 8 slices: the transpose of a split is one concatenate, whereas each slice's
   # transpose is a zero-padded full-size array that XLA then sums (32 of them with the Jacobian).
   return [jnp.squeeze(v, 0) for v in jnp.split(vals, 8)], frac, inside

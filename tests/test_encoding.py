@@ -9,6 +9,7 @@ weights inside a cell and rounding error ~1e-16 / h ~ 1e-10 per unit of value; w
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 
@@ -29,6 +30,8 @@ SMALL = HashConfig(n_levels=4, n_features=2, log2_table_size=10, base_resolution
                    per_level_scale=1.5)
 # The paper's levels with a small table: 3 dense levels, then hashed with coordinates up to ~4097.
 PAPER_LEVELS = HashConfig(log2_table_size=12)
+# The same levels gathered as 4 groups of 4 (HashConfig.gather_groups): the features must not change.
+GROUPED = dataclasses.replace(PAPER_LEVELS, gather_groups=4)
 FD_STEP = 1e-6  # central-difference step in [-1, 1] units (float64)
 MARGIN = 0.05  # keep finite-difference points this far (in cell fractions) from cell faces
 
@@ -140,7 +143,8 @@ class EncodingVariantsTest(chex.TestCase):
     np.testing.assert_allclose(jac, want, atol=1e-4)
 
 
-@pytest.mark.parametrize("cfg", [SMALL, PAPER_LEVELS], ids=["small", "paper_levels"])
+@pytest.mark.parametrize("cfg", [SMALL, PAPER_LEVELS, GROUPED],
+                         ids=["small", "paper_levels", "grouped"])
 def test_values_float64(cfg):
   x = np.random.default_rng(5).uniform(-1.0, 1.0, (64, 3))
   x[:3] = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 0.0]]  # the box's corners
@@ -152,7 +156,8 @@ def test_values_float64(cfg):
   np.testing.assert_allclose(got_j, got, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("cfg", [SMALL, PAPER_LEVELS], ids=["small", "paper_levels"])
+@pytest.mark.parametrize("cfg", [SMALL, PAPER_LEVELS, GROUPED],
+                         ids=["small", "paper_levels", "grouped"])
 def test_jacobian_matches_finite_differences(cfg):
   x = interior_points(np.random.default_rng(7), 16, cfg)
   tables = random_tables(8, cfg)
@@ -276,3 +281,20 @@ def test_table_gradient_through_custom_jvp():
     check_grads(jax.jit(eikonal_autodiff), (tables,), order=1, modes=("fwd", "rev"))
     check_grads(jax.jit(lambda t, p: encoding.encode(t, p, cfg)), (tables, x), order=1,
                 modes=("fwd", "rev"))
+
+
+def test_grouped_gather_gives_the_same_table_gradient():
+  """gather_groups splits the gather and its scatter-add; the gradient must be the same sum."""
+  rng = np.random.default_rng(16)
+  x = jnp.asarray(rng.uniform(-1.0, 1.0, (256, 3)), jnp.float32)
+  tables = jnp.asarray(random_tables(17, PAPER_LEVELS), jnp.float32)
+  a = jnp.asarray(rng.normal(size=(256, 32)), jnp.float32)
+
+  def loss(t, cfg):
+    feats, jac = encoding.encode_with_jacobian(t, x, cfg)
+    return jnp.sum(a * feats) + jnp.sum(jnp.einsum("nk,nkd->nd", a, jac) ** 2)
+
+  np.testing.assert_allclose(jax.grad(loss)(tables, GROUPED), jax.grad(loss)(tables, PAPER_LEVELS),
+                             rtol=1e-6, atol=1e-6)
+  with pytest.raises(ValueError, match="must divide"):
+    encoding.encode(tables, x, dataclasses.replace(PAPER_LEVELS, gather_groups=3))
