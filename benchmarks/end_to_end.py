@@ -6,7 +6,8 @@ Stages (each timed by wall clock, in this order, in WORK_DIR):
   train      ofjax.train.train on the associated scene, cpu preset (in process, so that it can
              keep `--points` checkpoints for the curve; the step and loop are the CLI's)
   export     python -m ofjax.export WORK/run --out WORK/run/mesh.ply                  (in process)
-  eval       python -m ofjax.eval --pred WORK/run/mesh.ply --gt WORK/scene --json     (subprocess)
+  eval       python -m ofjax.eval --pred WORK/run/mesh.ply --gt WORK/scene --poses WORK/scene/poses.json
+             --json (subprocess; the mesh is moved from the association's frame into the truth's)
 The curve: every kept checkpoint is exported and evaluated against the synthetic ground truth;
 its time is the training wall time at that step (metrics.jsonl, compile included). Written to
 WORK/end_to_end.json and WORK/chamfer_vs_time.png.
@@ -71,7 +72,7 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
   cfg = result.cfg
   template = fields.init_params(jax.random.PRNGKey(0), cfg)
   opt_template = train.make_optimizer(cfg).init(template)
-  gt, _ = eval_lib.load_ground_truth(scene_dir)
+  gt, meta = eval_lib.load_ground_truth(scene_dir)
   points = []
   for step in checkpoint.list_steps(run_dir):
     if step in skip:
@@ -80,7 +81,9 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
     mesh_path = run_dir / "curve" / f"mesh_{step:06d}.ply"
     export.export_run(params, cfg, result.norm, result.box, mesh_path,
                       cfg.train.mesh_resolution)
-    ev = metrics.evaluate(load_mesh(mesh_path), gt)
+    mesh = load_mesh(mesh_path)
+    eval_lib.to_truth_frame(mesh, scene_dir / "poses.json", scene_dir, meta)
+    ev = metrics.evaluate(mesh, gt)
     points.append({"step": step, "train_s": float(np.interp(step, log_steps, log_times)),
                    "chamfer_um": ev.summary["chamfer_um"]})
   return points
@@ -116,7 +119,8 @@ def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None)
   mesh_path = run_dir / "mesh.ply"
   _, stages["export"] = _timed(lambda: export.main([str(run_dir), "--out", str(mesh_path)]))
   out, stages["eval"] = _timed(lambda: _subprocess(
-      "ofjax.eval", "--pred", str(mesh_path), "--gt", str(scene_dir), "--json"))
+      "ofjax.eval", "--pred", str(mesh_path), "--gt", str(scene_dir), "--poses",
+      str(scene_dir / "poses.json"), "--json"))
   final = json.loads(out.strip().splitlines()[-1])
   last = result.cfg.train.steps
   pts = curve(run_dir, scene_dir, result, skip={last})

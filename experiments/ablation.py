@@ -130,16 +130,47 @@ def run_method(job: sweep.Job) -> dict:
     except NoSurface as e:
       return {"eval": None, "no_surface": str(e)[-sweep.STDOUT_TAIL_CHARS:],
               "stages_s": {"train": time.time() - t0}, "run_dir": str(run_dir), "git": git}
+  return _evaluated(job, stages, git)
+
+
+def eval_args(job: sweep.Job) -> list[str]:
+  """ofjax.eval's pose argument for a run: associated poses are moved into the truth's frame."""
+  return ["--poses", job.params["poses"]] if job.params["poses_source"] == "associate" else []
+
+
+def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
+  """Evaluates and renders a finished reconstruction in job's run directory; its record's result."""
+  p, run_dir = job.params, Path(job.params["run_dir"])
   mesh = run_dir / "mesh.ply"
   out, stages["eval"] = _cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--json",
-                             "--out", str(run_dir))
+                             "--out", str(run_dir), *eval_args(job))
   from ofjax import plots
   from ofjax.meshquery import load_mesh, vertex_rgb
   m = load_mesh(mesh)
   plots.mesh_preview(run_dir / "preview.png", np.asarray(m.vertices), np.asarray(m.faces),
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
-          "run_dir": str(run_dir), "git": git}
+          "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job)}
+
+
+def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
+  """Re-runs the evaluation of finished runs that were evaluated with other arguments than
+  eval_args gives now (records older than --poses count as none); the reconstruction is kept,
+  the record says which commit evaluated it."""
+  by_result = {j.result: j for j in jobs}
+  for r in records:
+    res = r.get("result")
+    if not res or res.get("eval") is None or "job" not in r:
+      continue
+    job = by_result[r["job"]["result"]]
+    if res.get("eval_args", []) == eval_args(job):
+      continue
+    log(f"ablation: re-evaluating {r['name']} with {' '.join(eval_args(job))}")
+    stages = {k: v for k, v in res["stages_s"].items() if k != "eval"}
+    new = _evaluated(job, stages, res.get("git"))
+    r["result"] = {**new, "eval_git": git_state()}
+    fileio.write_json(job.result, {k: v for k, v in r.items() if k != "skipped"})
+  return records
 
 
 def git_state() -> dict:
@@ -418,7 +449,9 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
         " (no surface)" if r["result"].get("no_surface") else "")
     lines.append(f"| {j['params'].get('poses_source', '-')} | {j['scene']} | {j['variant']} | "
                  f"{j['seed']} | {r['wall_s']:.0f} | {st} | {r['machine']['host']} | "
-                 f"{(r['result'].get('git') or {}).get('commit', '-')[:10]} |")
+                 f"{(r['result'].get('git') or {}).get('commit', '-')[:10]}"
+                 + (f" (re-evaluated at {r['result']['eval_git']['commit'][:10]})"
+                    if "eval_git" in r["result"] else "") + " |")
   return "\n".join(lines) + "\n"
 
 
@@ -491,7 +524,8 @@ def main(argv=None) -> int:
                                 params={"poses_source": ps, "scene_dir": str(scene_dir),
                                         "poses": str(pose_file), "run_dir": str(work / "runs" / name),
                                         "steps": args.steps}))
-  records = sweep.run_jobs(jobs, run_method, workers=args.workers, ray_address=args.ray, log=log)
+  records = reevaluate(sweep.run_jobs(jobs, run_method, workers=args.workers,
+                                     ray_address=args.ray, log=log), jobs, log)
 
   summary = summarise(records)
   figures = {}

@@ -68,7 +68,9 @@ def main(argv=None) -> int:
     train_argv += ["--steps", str(args.steps)]
   _run("train", train.main, train_argv, timings)
   mesh_path = run_dir / "mesh.ply"
-  _run("eval", eval_cli.main, ["--pred", str(mesh_path), "--gt", str(scene_dir)], timings)
+  # The mesh is in the association's frame; eval moves it into the truth's (--poses).
+  _run("eval", eval_cli.main, ["--pred", str(mesh_path), "--gt", str(scene_dir), "--poses",
+                               str(scene_dir / "poses.json")], timings)
   ev = json.loads((run_dir / "mesh_eval.json").read_text())
 
   # Metrology on the reconstruction: a square on the sample's top and a line across it.

@@ -9,6 +9,14 @@ PSNR), prints a table or, with --json, one JSON object, and writes into --out (d
 mesh) <mesh>_eval.json and two top-view heat maps: <mesh>_completeness.png (every GT point coloured
 by its distance to the mesh) and <mesh>_accuracy.png (every evaluated mesh sample coloured by its
 distance to the true surface).
+
+--poses POSES.json names the poses the mesh was reconstructed with. Poses that `ofjax.associate`
+estimated live in its own world frame (scan 0's, sample up, origin at scan 0's median point),
+which differs from the generator's frame by a rigid motion no data can fix (the gauge). With
+--poses the mesh is first moved into the truth's frame by that motion, fitted over the WLI
+cameras of POSES.json and ground_truth/poses.json (`ofjax.associate.evaluate.gauge`: the WLI
+scans define the um frame), so the metrics measure the reconstruction, not the choice of origin.
+Without it the mesh is taken to be in the truth's frame already (true poses).
 """
 
 from __future__ import annotations
@@ -51,6 +59,21 @@ def load_ground_truth(scene_dir: str | Path) -> tuple[metrics.GroundTruth, dict]
       np.asarray(cloud.colors, np.float64) if cloud.has_colors() else None,
       np.asarray(cloud.normals, np.float64) if cloud.has_normals() else None)
   return gt, meta
+
+
+def to_truth_frame(mesh, poses_path: Path, scene_dir: Path, meta: dict) -> np.ndarray:
+  """Moves `mesh` (trimesh, in place) from the frame of poses_path into the truth's; returns the
+  [4, 4] rigid transform applied (module docstring, --poses)."""
+  from ofjax.associate.evaluate import gauge
+  from ofjax.scene import load_poses
+  gt_file = Path(scene_dir) / "ground_truth" / "poses.json"
+  size = meta.get("size_um")
+  if not size:
+    raise UserError(f"{Path(scene_dir) / 'ground_truth' / 'meta.json'}: has no size_um; regenerate "
+                    "the scene with `python -m ofjax.synth`")
+  transform = gauge(load_poses(poses_path), load_poses(gt_file), float(size))
+  mesh.apply_transform(transform)
+  return transform
 
 
 def with_pixels(summary: dict, meta: dict) -> dict:
@@ -107,6 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
                  help="F-score thresholds as fractions of the GT diagonal (default 0.005,0.01)")
   p.add_argument("--samples", type=int, default=metrics.N_SAMPLES,
                  help=f"points sampled on the mesh (default {metrics.N_SAMPLES})")
+  p.add_argument("--poses", type=Path, help="the poses the mesh was reconstructed with, when not "
+                 "the true ones (e.g. SCENE/poses.json from ofjax.associate): the mesh is moved "
+                 "into the truth's frame first")
   return p
 
 
@@ -118,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
     raise UserError(f"--samples {args.samples}: must be positive")
   pred = load_mesh(args.pred)
   gt, meta = load_ground_truth(args.gt)
+  frame = {}
+  if args.poses is not None:
+    g = to_truth_frame(pred, args.poses, args.gt, meta)
+    frame = {"poses": str(args.poses), "to_truth_frame": g.tolist()}
   ev = metrics.evaluate(pred, gt, thresholds=thresholds, n_samples=args.samples)
   summary = with_pixels(ev.summary, meta)
   if summary["n_pred_evaluated"] == 0:
@@ -136,8 +166,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.pred.name}: accuracy (mesh -> GT surface), mean "
           f"{summary['accuracy_um']:.3g} um", "distance (um)", vmax=vmax),
   }
-  result = metrics.json_ready({"pred": str(args.pred), "gt": str(args.gt), "units": "um", **summary,
-                       **{k: str(v) for k, v in pngs.items()}})
+  result = metrics.json_ready({"pred": str(args.pred), "gt": str(args.gt), "units": "um", **frame,
+                               **summary, **{k: str(v) for k, v in pngs.items()}})
   fileio.write_json(out / f"{stem}_eval.json", result)
   if args.json:
     print(json.dumps(result))

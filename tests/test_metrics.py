@@ -182,6 +182,45 @@ def test_eval_cli(tmp_path, capsys):
   assert (tmp_path / "o" / "pred_completeness.png").is_file()
 
 
+def _rigid(deg: float, axis, t) -> np.ndarray:
+  """[4, 4] rotation by deg about the unit axis, then translation t (Rodrigues)."""
+  k = np.asarray(axis, float) / np.linalg.norm(axis)
+  kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+  a = np.radians(deg)
+  m = np.eye(4)
+  m[:3, :3] = np.eye(3) + np.sin(a) * kx + (1 - np.cos(a)) * kx @ kx
+  m[:3, 3] = t
+  return m
+
+
+def test_eval_cli_moves_a_mesh_from_the_poses_frame_into_the_truths(tmp_path, capsys):
+  """A perfect reconstruction made in another frame (poses and mesh both moved by one rigid
+  motion, as ofjax.associate's scan-0 frame is) scores zero with --poses and not without."""
+  scene = tmp_path / "scene"
+  write_ground_truth(scene, np.random.default_rng(7))
+  meta = json.loads((scene / "ground_truth" / "meta.json").read_text())
+  (scene / "ground_truth" / "meta.json").write_text(json.dumps({**meta, "size_um": SIZE}))
+  rng = np.random.default_rng(8)
+  true_c2w = [_rigid(30.0, rng.normal(size=3), rng.uniform(-50, 50, 3)) for _ in range(3)]
+  cams = lambda c2ws: {"cameras": [{"name": f"wli_{i}", "modality": "wli", "c2w": m.tolist(),
+                                     "intrinsics": {"pixel_size": [2.0, 2.0]}}
+                                    for i, m in enumerate(c2ws)]}
+  (scene / "ground_truth" / "poses.json").write_text(json.dumps(cams(true_c2w)))
+  frame = _rigid(7.0, [0.2, -0.4, 1.0], [3.0, -2.0, 11.0])  # truth -> the estimate's frame
+  (tmp_path / "est.json").write_text(json.dumps(cams([frame @ m for m in true_c2w])))
+  moved = plate(0.0)
+  moved.apply_transform(frame)
+  moved.export(tmp_path / "pred.ply")
+  common = ["--pred", str(tmp_path / "pred.ply"), "--gt", str(scene), "--json", "--samples", "4000"]
+  assert evaluation.main(common) == 0
+  assert json.loads(capsys.readouterr().out)["chamfer_um"] > 1.0
+  assert evaluation.main(common + ["--poses", str(tmp_path / "est.json")]) == 0
+  out = json.loads(capsys.readouterr().out)
+  assert out["chamfer_um"] < 1e-4 * SIZE
+  np.testing.assert_allclose(out["to_truth_frame"], np.linalg.inv(frame), atol=1e-6)
+  assert evaluation.main(common + ["--poses", str(tmp_path / "missing.json")]) == 2
+
+
 @pytest.mark.parametrize("args", [["--gt", "nowhere"], ["--thresholds", "2"],
                                   ["--pred", "missing.ply"]])
 def test_eval_cli_user_errors(tmp_path, capsys, args):
