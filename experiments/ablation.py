@@ -183,7 +183,9 @@ def git_state() -> dict:
 
 def _mean_sd(values: list[float]) -> tuple[float, float, int]:
   a = np.asarray(values, np.float64)
-  return float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else float("nan"), len(a)
+  # No spread for a cell with a run that has no surface (inf) or no colour (nan).
+  spread = len(a) > 1 and bool(np.all(np.isfinite(a)))
+  return float(a.mean()), float(a.std(ddof=1)) if spread else float("nan"), len(a)
 
 
 # A run without a surface: no point of the truth is reached (Chamfer infinite, F-score 0) and no
@@ -230,7 +232,8 @@ def metric_table(rows: dict, scenes: list[str], key: str, digits: int = 3) -> st
   for v in VARIANTS:
     cells = [rows.get(s, {}).get(v) for s in scenes]
     means = [c[key][0] for c in cells if c is not None]
-    avg = f"{np.mean(means):.{digits}g}" if len(means) == len(scenes) else "-"
+    avg = "-" if len(means) != len(scenes) else _fmt(
+        {key: (float(np.mean(means)), float("nan"), 1)}, key, digits)
     lines.append(f"| {LABELS[v]} | " + " | ".join(_fmt(c, key, digits) for c in cells)
                  + f" | {avg} |")
   return "\n".join(lines)
