@@ -1,0 +1,76 @@
+"""experiments/ablation.py: re-evaluation of finished runs, and the tables it adds to the report."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+import ablation  # noqa: E402
+import sweep  # noqa: E402
+
+
+def _job(tmp_path: Path, source: str, variant: str = "fused") -> sweep.Job:
+  name = f"{source}_seed_{variant}_seed0"
+  return sweep.Job(scene="seed", variant=variant, seed=0, result=str(tmp_path / f"{name}.json"),
+                   params={"poses_source": source, "scene_dir": str(tmp_path / "scene"),
+                           "poses": str(tmp_path / f"{source}.json"),
+                           "run_dir": str(tmp_path / name), "steps": 600})
+
+
+def _finished(job: sweep.Job, **result) -> dict:
+  record = {"job": {"scene": job.scene, "variant": job.variant, "seed": job.seed,
+                    "result": job.result, "params": job.params},
+            "name": job.name, "seed": job.seed, "wall_s": 1.0, "machine": {"host": "h"},
+            "result": {"eval": {"chamfer_um": 9.0}, "stages_s": {"train": 5.0, "eval": 1.0},
+                       "run_dir": job.params["run_dir"], "git": {"commit": "a" * 40}, **result}}
+  Path(job.result).write_text(json.dumps(record))
+  return {**record, "skipped": True}
+
+
+def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, monkeypatch):
+  """An associated run evaluated before --poses is re-evaluated (its training kept, both commits
+  recorded, its record file rewritten); true-pose runs and up-to-date ones are left alone."""
+  calls = []
+
+  def fake_evaluated(job, stages, git):
+    calls.append(job.name)
+    return {"eval": {"chamfer_um": 1.0}, "stages_s": {**stages, "eval": 2.0},
+            "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job)}
+
+  monkeypatch.setattr(ablation, "_evaluated", fake_evaluated)
+  old, true, current = (_job(tmp_path, "associate"), _job(tmp_path, "true"),
+                        _job(tmp_path, "associate", "wli"))
+  records = [_finished(old), _finished(true),
+             _finished(current, eval_args=ablation.eval_args(current)),
+             {"job": {"result": "x"}, "name": "failed", "error": "boom"}]
+  out = ablation.reevaluate(records, [old, true, current], log=lambda m: None)
+  assert calls == [old.name]
+  assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
+  assert ablation.eval_args(true) == []
+  assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
+  assert out[0]["result"]["stages_s"] == {"train": 5.0, "eval": 2.0}
+  assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
+  stored = json.loads(Path(old.result).read_text())
+  assert stored["result"]["eval"] == {"chamfer_um": 1.0} and "skipped" not in stored
+  assert json.loads(Path(true.result).read_text())["result"]["eval"] == {"chamfer_um": 9.0}
+
+
+def test_pose_source_table_gives_the_ratio_per_method_and_scene():
+  cell = lambda v: {"chamfer_um": (v, float("nan"), 1)}  # noqa: E731
+  summary = {"associate": {"seed": {"fused": cell(3.0), "om": cell(float("inf"))}},
+             "true": {"seed": {"fused": cell(2.0), "om": cell(float("inf"))}}}
+  rows = {line.split(" | ")[0].strip("| "): line for line in
+          ablation.pose_source_table(summary, ["seed"]).splitlines()}
+  assert "1.50x (3 / 2)" in rows["Fused"]
+  assert "no surface" in rows["OM only"]
+  assert rows["WLI only"].endswith("| - |")
+
+
+def test_mean_and_spread_of_seeds():
+  assert ablation._mean_sd([1.0, 2.0, 3.0]) == (2.0, 1.0, 3)
+  mean, sd, n = ablation._mean_sd([1.0, float("inf")])
+  assert np.isinf(mean) and np.isnan(sd) and n == 2
