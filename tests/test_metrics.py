@@ -219,6 +219,12 @@ def test_eval_cli_moves_a_mesh_from_the_poses_frame_into_the_truths(tmp_path, ca
   assert out["chamfer_um"] < 1e-4 * SIZE
   np.testing.assert_allclose(out["to_truth_frame"], np.linalg.inv(frame), atol=1e-6)
   assert evaluation.main(common + ["--poses", str(tmp_path / "missing.json")]) == 2
+  (tmp_path / "om_only.json").write_text(json.dumps({"cameras": [
+      {"name": "om_0", "modality": "om", "c2w": np.eye(4).tolist()}]}))
+  capsys.readouterr()
+  assert evaluation.main(common + ["--poses", str(tmp_path / "om_only.json")]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and "shares no WLI camera" in err
 
 
 @pytest.mark.parametrize("args", [["--gt", "nowhere"], ["--thresholds", "2"],
