@@ -46,11 +46,8 @@ DEFAULT_STEPS = {"cpu": 10, "paper": 4}
 
 def naive_field_fns(params, cfg: Config):
   """fields.field_fns with d sdf / dx by jax.grad through the plain hash gather (nested autodiff)."""
-  sdf_net = fields._nets(cfg)[0]
-
   def sdf_and_feature(p, x):
-    feats = encoding._encode_plain(p["tables"], x, cfg.hash)
-    return sdf_net.apply({"params": p["sdf"]}, jnp.concatenate([x, feats], -1))
+    return fields.sdf_and_feature(p, x, cfg, encode=encoding._encode_plain)
 
   def geometry_fn(x):
     out = sdf_and_feature(params, x)
@@ -70,11 +67,10 @@ def no_normal_field_fns(params, cfg: Config):
   the SDF values, colours, losses and Adam: what any way of computing normals adds comes on top.
   The losses it trains are wrong (the eikonal term is constant); it is timed, never trained.
   """
-  geometry_fn, color_fn, sdf_fn = fields.field_fns(params, cfg)
+  _, color_fn, sdf_fn = fields.field_fns(params, cfg)
 
   def geometry_without_normal(x):
-    feats = encoding.encode(params["tables"], x, cfg.hash)
-    out = fields._nets(cfg)[0].apply({"params": params["sdf"]}, jnp.concatenate([x, feats], -1))
+    out = fields.sdf_and_feature(params, x, cfg)
     return out[..., 0], jnp.zeros_like(x), out[..., 1:]
 
   return geometry_without_normal, color_fn, sdf_fn

@@ -213,16 +213,20 @@ def summarise(records: list[dict]) -> dict:
                for sc, row in rows.items()} for ps, rows in table.items()}
 
 
-def _fmt(cell, key: str, digits: int = 3) -> str:
-  if cell is None:
-    return "-"
-  mean, sd, n = cell[key]
+def _number(mean: float, digits: int = 3) -> str:
+  """A table value: inf (a run without a surface) and nan (nothing measured) in words."""
   if np.isinf(mean):
     return "no surface"
   if np.isnan(mean):
     return "n/a"
-  text = f"{mean:.{digits}g}"
-  return text + (f" ± {sd:.2g} (n={n})" if n > 1 else "")
+  return f"{mean:.{digits}g}"
+
+
+def _fmt(cell, key: str, digits: int = 3) -> str:
+  if cell is None:
+    return "-"
+  mean, sd, n = cell[key]
+  return _number(mean, digits) + (f" ± {sd:.2g} (n={n})" if n > 1 and np.isfinite(mean) else "")
 
 
 def metric_table(rows: dict, scenes: list[str], key: str, digits: int = 3) -> str:
@@ -232,8 +236,7 @@ def metric_table(rows: dict, scenes: list[str], key: str, digits: int = 3) -> st
   for v in VARIANTS:
     cells = [rows.get(s, {}).get(v) for s in scenes]
     means = [c[key][0] for c in cells if c is not None]
-    avg = "-" if len(means) != len(scenes) else _fmt(
-        {key: (float(np.mean(means)), float("nan"), 1)}, key, digits)
+    avg = _number(float(np.mean(means)), digits) if len(means) == len(scenes) else "-"
     lines.append(f"| {LABELS[v]} | " + " | ".join(_fmt(c, key, digits) for c in cells)
                  + f" | {avg} |")
   return "\n".join(lines)

@@ -22,8 +22,8 @@ Conventions (L levels, F features per level, T = 2**log2_table_size entries per 
 All levels and corners are gathered by one advanced index into the table viewed as [L*T, F] rows
 (level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one scatter-add, shared by
 the feature and the Jacobian cotangents (HashConfig.gather_groups > 1 splits the levels into that
-many such gathers and scatters, independent ops for a multi-core CPU). Layout (measured on XLA CPU, benchmarks/encoding.py):
-the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit adds, so features and
+many such gathers and scatters, independent ops for a multi-core CPU). Layout (measured on XLA
+CPU, benchmarks/encoding.py): the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit adds, so features and
 Jacobian come out point-major with no transpose; reductions over a non-minor axis, transposes
 fused into the interpolation, and gathering F scalars instead of one F-row were each slower.
 """
@@ -79,12 +79,10 @@ def _gather(tables: jax.Array, x: jax.Array, cfg: HashConfig):
     inside: [3, N] 1 where x was not clipped along that axis, else 0.
   """
   n_levels, table_size, n_features = tables.shape
-  groups = cfg.gather_groups
+  groups = cfg.gather_groups  # divides n_levels (HashConfig checks it)
   if n_levels * table_size >= 2 ** 31:
     raise ValueError(f"{n_levels} x {table_size} hash-table rows exceed int32 gather indices; "
                      "lower log2_table_size")
-  if groups < 1 or n_levels % groups:
-    raise ValueError(f"gather_groups {groups} must divide n_levels {n_levels}")
   u = (x.T + 1.0) * 0.5  # [3, N]
   inside = ((u >= 0.0) & (u <= 1.0)).astype(x.dtype)
   scale = jnp.asarray(level_scales(cfg), x.dtype)  # [L]

@@ -71,12 +71,11 @@ def to_truth_frame(mesh, poses_path: Path, scene_dir: Path, meta: dict) -> np.nd
   if not size:
     raise UserError(f"{Path(scene_dir) / 'ground_truth' / 'meta.json'}: has no size_um; regenerate "
                     "the scene with `python -m ofjax.synth`")
-  est, truth = load_poses(poses_path), load_poses(gt_file)
-  wli = lambda d: {c.get("name") for c in d["cameras"] if c.get("modality") == "wli"}  # noqa: E731
-  if not wli(est) & wli(truth):
+  try:
+    transform = gauge(load_poses(poses_path), load_poses(gt_file), float(size))
+  except ValueError:
     raise UserError(f"{poses_path}: shares no WLI camera name with {gt_file}; --poses needs the "
-                    "poses.json written by `python -m ofjax.associate` for this scene")
-  transform = gauge(est, truth, float(size))
+                    "poses.json written by `python -m ofjax.associate` for this scene") from None
   mesh.apply_transform(transform)
   return transform
 

@@ -130,11 +130,19 @@ def inv_s(params):
   return jnp.exp(10.0 * params["variance"])
 
 
+def sdf_and_feature(params, x, cfg: Config, encode=encoding.encode):
+  """[..., 1 + feature_dim] SDF network output (SDF, then f) at points x: [..., 3].
+
+  encode: (tables, x, hash cfg) -> features; benchmarks pass the plain gather to differentiate
+  through it.
+  """
+  feats = encode(params["tables"], x, cfg.hash)
+  return _nets(cfg)[0].apply({"params": params["sdf"]}, jnp.concatenate([x, feats], -1))
+
+
 def sdf_value(params, x, cfg: Config):
   """[...] SDF at points x: [..., 3] (no gradient computation: sampling and export)."""
-  feats = encoding.encode(params["tables"], x, cfg.hash)
-  sdf_net = _nets(cfg)[0]
-  return sdf_net.apply({"params": params["sdf"]}, jnp.concatenate([x, feats], -1))[..., 0]
+  return sdf_and_feature(params, x, cfg)[..., 0]
 
 
 def geometry(params, x, cfg: Config):

@@ -44,6 +44,8 @@ def gauge(est: dict, gt: dict, scene_size: float) -> np.ndarray:
   """[4, 4] rigid gt_from_est fitted over the WLI cameras of two poses files' contents."""
   e, g = _cams(est), _cams(gt)
   names = [n for n, c in g.items() if c["modality"] == "wli" and n in e]
+  if not names:
+    raise ValueError("the two poses files share no WLI camera name, so the gauge is undefined")
   src = _pose_points([np.asarray(e[n]["c2w"]) for n in names], scene_size)
   dst = _pose_points([np.asarray(g[n]["c2w"]) for n in names], scene_size)
   return _fit(src, dst, with_scaling=False)
