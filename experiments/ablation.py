@@ -13,9 +13,11 @@ first of them. The synthetic scenes are always rendered with synth seed 0 (one s
 trainings), so a spread over seeds is the training's spread.
 
 Stages run as subprocesses of the ofjax CLIs, jobs through `experiments/sweep.py` (processes with
---workers, or Ray with --ray ADDRESS). Everything large goes under --work (default
-runs/ablation/<budget tag>/: scenes, run directories with meshes and heat maps, one record JSON
-per job, so an interrupted run resumes); the summary goes to --out (default experiments/results/):
+--workers, or Ray with --ray ADDRESS). Everything large goes under --work (default runs/ablation/):
+data_<resolution>/ holds the scenes and their association, steps<N>_<resolution>_cpu-<hash>/ the
+run directories with meshes and heat maps, one record JSON per job, so an interrupted run resumes;
+<hash> is a fingerprint of the cpu preset, so runs trained with another preset are retrained, not
+reused. The summary goes to --out (default experiments/results/):
 ablation.json (every record, the machine, the commit, the budget), ablation.md (the tables laid
 out like the paper's, ratios beside the paper's, the issue's targets, wall times) and
 figures/<poses>_<scene>.png (per method: top-view render and completeness heat map, one colour
@@ -28,6 +30,7 @@ and name the work directory, so runs of different budgets never mix.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -41,7 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py beside this file
 import sweep  # noqa: E402
 
-from ofjax import fileio  # noqa: E402
+from ofjax import config, fileio  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 SCENES = ("seed", "circuit", "wing", "sensor", "lenses")
@@ -171,6 +174,12 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
     r["result"] = {**new, "eval_git": git_state()}
     fileio.write_json(job.result, {k: v for k, v in r.items() if k != "skipped"})
   return records
+
+
+def preset_fingerprint() -> str:
+  """8 hex digits of the cpu preset's resolved config: what every neural run trains with."""
+  text = json.dumps(config.resolve("cpu").to_dict(), sort_keys=True)
+  return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
 def git_state() -> dict:
@@ -411,7 +420,8 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
               f", uncommitted {settings['git_at_end']['uncommitted_code']}); stages that started "
               "later ran the later code.") + "", "",
            f"Budget: training steps {settings['steps'] or 'the cpu preset default'}, synth "
-           f"resolution `{settings['resolution']}`, cpu preset"
+           f"resolution `{settings['resolution']}`, cpu preset "
+           f"(fingerprint `{settings.get('preset_fingerprint', '-')}`)"
            + ("" if settings["full_budget"] else " - **REDUCED BUDGET: not the issue's full run**")
            + ".", "",
            f"Machine: {settings['machine']['host']}, {settings['machine']['platform']}, "
@@ -506,22 +516,22 @@ def main(argv=None) -> int:
   # The checkout is shared and the stages run from it: the code state is taken before the first job
   # and again after the last, and the report says when they differ.
   git_start = git_state()
-  tag = f"steps{args.steps or 'preset'}_{args.resolution}"
-  work = args.work / tag
+  data_work = args.work / f"data_{args.resolution}"
+  work = args.work / f"steps{args.steps or 'preset'}_{args.resolution}_cpu-{preset_fingerprint()}"
   log = lambda m: print(m, flush=True)  # noqa: E731
   t0 = time.time()
   # A scene synthesised for true poses only is not a finished data job of an associated table.
   data_tag = "_associated" if "associate" in poses else ""
   prep = [sweep.Job(scene=s, variant="data", seed=SYNTH_SEED,
-                    result=str(work / "records" / f"data_{s}{data_tag}.json"),
-                    params={"scene_dir": str(work / "scenes" / s), "resolution": args.resolution,
+                    result=str(data_work / "records" / f"data_{s}{data_tag}.json"),
+                    params={"scene_dir": str(data_work / "scenes" / s), "resolution": args.resolution,
                             "associate": "associate" in poses}) for s in scenes]
   prep_records = sweep.run_jobs(prep, prepare, workers=args.workers, ray_address=args.ray, log=log)
   ready = {r["job"]["scene"] for r in prep_records if "result" in r}
   jobs = []
   for ps in poses:
     for s in sorted(ready, key=scenes.index):
-      scene_dir = work / "scenes" / s
+      scene_dir = data_work / "scenes" / s
       pose_file = scene_dir / ("poses.json" if ps == "associate" else "ground_truth/poses.json")
       for v in variants:
         # Poisson is deterministic: one run, whatever the seeds.
@@ -547,6 +557,7 @@ def main(argv=None) -> int:
         figures[(ps, s)] = str(path.relative_to(args.out))
   settings = {"argv": argv, "scenes": scenes, "variants": variants, "seeds": seeds, "poses": poses,
               "steps": args.steps, "resolution": args.resolution, "preset": "cpu",
+              "preset_fingerprint": preset_fingerprint(),
               "full_budget": args.steps is None and args.resolution == "quick"
               and scenes == list(SCENES) and variants == list(VARIANTS) and poses == list(POSE_SOURCES),
               "workers": args.workers, "ray": args.ray, "work": str(work), "machine": sweep.machine(),
