@@ -35,9 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ofjax import encoding, fields, synth, train
+from ofjax import config, encoding, fields, synth, train
 from ofjax import scene as scene_lib
-from ofjax.config import Config, resolve
+from ofjax.config import Config
 from ofjax.errors import UserError, cli
 
 # Timed steps per preset when --steps is not given: the paper step is several times the cpu one.
@@ -76,33 +76,16 @@ def no_normal_field_fns(params, cfg: Config):
   return geometry_without_normal, color_fn, sdf_fn
 
 
-def parse_variant(spec: str) -> tuple[str, dict[str, dict]]:
-  """'cpu+hash.log2_table_size=19' -> ('cpu', {'hash': {'log2_table_size': 19}})."""
-  name, *sets = spec.split("+")
-  over: dict[str, dict] = {}
-  for item in sets:
-    key, sep, value = item.partition("=")
-    comp, dot, field = key.partition(".")
-    if not sep or not dot:
-      raise UserError(f"--presets {spec!r}: write overrides as component.field=value")
-    try:
-      parsed = json.loads(value)
-    except json.JSONDecodeError:
-      parsed = value
-    over.setdefault(comp, {})[field] = parsed
-  return name, over
-
-
 def make_config(spec: str, rays: int | None, samples: tuple[int, int] | None) -> Config:
-  name, over = parse_variant(spec)
+  extra: dict[str, dict] = {}
   if rays:
-    over.setdefault("train", {})["n_rays"] = rays
+    extra["train"] = {"n_rays": rays}
   if samples:
-    over.setdefault("render", {}).update(n_samples=samples[0], n_importance=samples[1])
+    extra["render"] = {"n_samples": samples[0], "n_importance": samples[1]}
   try:
-    return resolve(name, **over)
-  except (KeyError, TypeError, AttributeError) as e:
-    raise UserError(f"--presets {spec!r}: {e}; use a preset name and existing config fields")
+    return config.resolve_spec(spec, **extra)
+  except ValueError as e:
+    raise UserError(f"--presets {e}") from None
 
 
 def samples_per_ray(cfg: Config) -> int:
@@ -177,7 +160,7 @@ def run(specs: list[str], rays, samples, steps, naive: bool, bound: bool = False
   for spec in specs:
     cfg = make_config(spec, rays, samples)
     data = train.prepare_data(scene, scene_lib.compute_normalization(scene, cfg.train.box_margin))
-    n = steps or DEFAULT_STEPS.get(parse_variant(spec)[0], 4)
+    n = steps or DEFAULT_STEPS.get(config.parse_spec(spec)[0], 4)
     fast = time_step(cfg, data, fields.field_fns, n)
     row = {"rays": cfg.train.n_rays, "samples_per_ray": samples_per_ray(cfg),
            "log2_table_size": cfg.hash.log2_table_size, **fast}

@@ -154,3 +154,38 @@ def resolve(preset: str = "cpu", **overrides: dict[str, Any]) -> Config:
   for comp, fields in overrides.items():
     cfg = dataclasses.replace(cfg, **{comp: dataclasses.replace(getattr(cfg, comp), **fields)})
   return cfg
+
+
+def parse_spec(spec: str) -> tuple[str, dict[str, dict[str, Any]]]:
+  """A preset variant 'cpu+hash.log2_table_size=19+optim.lr=0.005' -> (preset, overrides).
+
+  Values are JSON where they parse (numbers, true/false, lists), else strings. Raises ValueError
+  for an item that is not component.field=value.
+  """
+  name, *sets = spec.split("+")
+  over: dict[str, dict[str, Any]] = {}
+  for item in sets:
+    key, sep, value = item.partition("=")
+    comp, dot, field = key.partition(".")
+    if not sep or not dot:
+      raise ValueError(f"{spec!r}: write overrides as component.field=value")
+    try:
+      parsed = json.loads(value)
+    except json.JSONDecodeError:
+      parsed = value
+    over.setdefault(comp, {})[field] = parsed
+  return name, over
+
+
+def resolve_spec(spec: str, **extra: dict[str, Any]) -> Config:
+  """The Config of a preset variant (parse_spec), then `extra` overrides as resolve's.
+
+  ValueError names what is unknown.
+  """
+  name, over = parse_spec(spec)
+  for comp, fields in extra.items():
+    over.setdefault(comp, {}).update(fields)
+  try:
+    return resolve(name, **over)
+  except (KeyError, TypeError, AttributeError) as e:
+    raise ValueError(f"{spec!r}: {e}; use a preset name and existing config fields") from None
