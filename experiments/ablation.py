@@ -30,7 +30,6 @@ and name the work directory, so runs of different budgets never mix.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import shutil
@@ -177,9 +176,8 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
 
 
 def preset_fingerprint() -> str:
-  """8 hex digits of the cpu preset's resolved config: what every neural run trains with."""
-  text = json.dumps(config.resolve("cpu").to_dict(), sort_keys=True)
-  return hashlib.sha256(text.encode()).hexdigest()[:8]
+  """The cpu preset's Config.fingerprint(): what every neural run trains with."""
+  return config.resolve("cpu").fingerprint()
 
 
 def git_state() -> dict:

@@ -36,11 +36,6 @@ from ofjax.errors import UserError, cli  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def fingerprint(cfg: config.Config) -> str:
-  """8 hex digits of a resolved config."""
-  return hashlib.sha256(json.dumps(cfg.to_dict(), sort_keys=True).encode()).hexdigest()[:8]
-
-
 def _git_commit() -> str:
   return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
                         text=True).stdout.strip()
@@ -68,7 +63,7 @@ def run_variant(job: sweep.Job) -> dict:
   last = json.loads((run_dir / train.METRICS).read_text().splitlines()[-1])
   return {"train_s": result.seconds, "wall_s": time.time() - t0, "steps": cfg.train.steps,
           "inv_s": last["inv_s"], "loss_wli": last["loss/wli"], "eval": ev,
-          "fingerprint": fingerprint(cfg), "commit": _git_commit(), "run_dir": str(run_dir)}
+          "fingerprint": cfg.fingerprint(), "commit": _git_commit(), "run_dir": str(run_dir)}
 
 
 def table(records: list[dict]) -> str:
@@ -128,7 +123,7 @@ def main(argv=None) -> int:
   jobs = []
   for spec in [s for s in args.variants.split(",") if s]:
     try:
-      fp = fingerprint(config.resolve_spec(spec, **extra))
+      fp = config.resolve_spec(spec, **extra).fingerprint()
     except ValueError as e:
       raise UserError(f"--variants {e}") from None
     name = f"{fp}_{hashlib.sha256(spec.encode()).hexdigest()[:6]}"

@@ -9,6 +9,7 @@ default: small enough to train the default synthetic scene on a 2-core laptop CP
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from typing import Any
 
@@ -122,6 +123,10 @@ class Config:
 
   def dumps(self) -> str:
     return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+  def fingerprint(self) -> str:
+    """8 hex digits of the resolved values: runs with equal fingerprints trained alike."""
+    return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:8]
 
 
 PRESETS: dict[str, Config] = {

@@ -36,3 +36,11 @@ def test_cpu_preset_scales_the_variance_rate_to_its_shorter_schedule():
   assert paper.lr_inv_s == 0.001 and cpu.lr_inv_s == 0.01
   assert (cpu.lr, cpu.b1, cpu.b2, cpu.eps, cpu.decay_to) == (paper.lr, paper.b1, paper.b2,
                                                                paper.eps, paper.decay_to)
+
+
+def test_fingerprint_follows_the_resolved_values_not_the_spelling():
+  cpu = config.resolve("cpu")
+  assert config.resolve_spec("cpu+optim.lr_inv_s=0.01").fingerprint() == cpu.fingerprint()
+  assert config.resolve_spec("cpu+optim.lr_inv_s=0.001").fingerprint() != cpu.fingerprint()
+  assert config.Config.from_dict(cpu.to_dict()).fingerprint() == cpu.fingerprint()
+  assert len(cpu.fingerprint()) == 8 and int(cpu.fingerprint(), 16) >= 0
