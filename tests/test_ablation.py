@@ -74,3 +74,15 @@ def test_mean_and_spread_of_seeds():
   assert ablation._mean_sd([1.0, 2.0, 3.0]) == (2.0, 1.0, 3)
   mean, sd, n = ablation._mean_sd([1.0, float("inf")])
   assert np.isinf(mean) and np.isnan(sd) and n == 2
+
+
+def test_no_surface_note_says_when_only_some_seeds_had_none():
+  def rec(scene, seed, ev):
+    return {"job": {"scene": scene, "variant": "om", "seed": seed,
+                    "params": {"poses_source": "true"}}, "result": {"eval": ev}}
+  ev = {"chamfer_um": 47.0, "chamfer_px": 39.0, "fscore": [{"fscore": 0.07}], "albedo_psnr": 15.5}
+  rows = ablation.summarise([rec("seed", 0, None), rec("seed", 1, ev), rec("wing", 0, None)])["true"]
+  assert np.isinf(rows["seed"]["om"]["chamfer_um"][0])
+  note = [b for b in ablation.differences(rows, ["seed", "wing"], 600) if "OM only" in b]
+  assert len(note) == 1 and "on 2 of 2 scenes (seed, wing)" in note[0]
+  assert "on seed in some of the seeds only" in note[0]
