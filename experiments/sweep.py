@@ -9,7 +9,9 @@ Conventions:
   - The record (one JSON per job, written atomically by the driver, never by a worker) holds the
     job, the seed, the wall time in seconds, the machine the job ran on, and the result. A job
     that raises writes no result file; its record carries "error" and the sweep goes on.
-  - Processes: `concurrent.futures.ProcessPoolExecutor(workers)` on this machine. Ray (the
+  - Processes: `concurrent.futures.ProcessPoolExecutor(workers)` on this machine, started by
+    "spawn": a forked child of a driver that has already run JAX (its thread pools) can hang
+    forever, and a job function may train in process. Ray (the
     optional extra `ofjax[cluster]`): `ray_address="local"` starts a local instance for the sweep
     (and shuts it down after); any other address is passed to `ray.init(address=...)`, e.g.
     "auto" or "ray://head:10001"; an already initialised Ray is used as it is. Each job becomes
@@ -29,6 +31,7 @@ import argparse
 import concurrent.futures
 import dataclasses
 import json
+import multiprocessing
 import os
 import platform
 import subprocess
@@ -122,7 +125,8 @@ def run_jobs(jobs: list[Job], fn: Callable[[Job], dict], workers: int = 1,
     return [records[i] for i in range(len(jobs))]
 
   if ray_address is None:
-    with concurrent.futures.ProcessPoolExecutor(max_workers=workers) as pool:
+    with concurrent.futures.ProcessPoolExecutor(
+        max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
       futures = {pool.submit(execute, jobs[i], fn): i for i in todo}
       for fut in concurrent.futures.as_completed(futures):
         i = futures[fut]

@@ -20,6 +20,13 @@ def square_job(job: sweep.Job) -> dict:
   return {"value": job.seed ** 2 * job.params.get("scale", 1), "pid": os.getpid()}
 
 
+def jax_job(job: sweep.Job) -> dict:
+  """A job that runs XLA, as a job training in process does."""
+  import jax
+  import jax.numpy as jnp
+  return {"value": float(jax.jit(lambda x: jnp.sum(x * x))(jnp.arange(job.seed + 1.0)))}
+
+
 def make_jobs(root: Path, variants=("a", "b"), seeds=(0, 1, 2)) -> list[sweep.Job]:
   return [sweep.Job(scene="s", variant=v, seed=s, result=str(root / f"{v}_{s}.json"),
                     params={"scale": 3})
@@ -95,3 +102,15 @@ def test_ray_local(tmp_path):
     check_records(jobs, again, skipped=True)
   finally:
     ray.shutdown()
+
+
+@pytest.mark.timeout(120)
+def test_workers_run_jax_after_the_driver_did(tmp_path):
+  """Workers are spawned, not forked: a fork of a process whose XLA thread pools are running can
+  hang forever in the child (seen when a sweep ran inside the test session)."""
+  import jax.numpy as jnp
+  float(jnp.ones(4).sum())  # the driver has XLA running
+  jobs = [sweep.Job(scene="s", variant="jax", seed=s, result=str(tmp_path / f"{s}.json"))
+          for s in range(3)]
+  records = sweep.run_jobs(jobs, jax_job, workers=2, log=lambda m: None)
+  assert [r["result"]["value"] for r in records] == [0.0, 1.0, 5.0]
