@@ -18,6 +18,11 @@ EXIT_USER_ERROR = 2
 class UserError(Exception):
   """A problem with the user's input; the message is one line naming the file and the fix."""
 
+  def __init__(self, message: str):
+    # One line by contract, also where the message quotes a library's exception or a file's own
+    # strings (a corrupt .sur's unit field can hold a newline): whitespace runs become one space.
+    super().__init__(" ".join(str(message).split()))
+
 
 def cli(main: Callable[..., int | None]) -> Callable[..., int]:
   """Wraps a CLI `main(argv)` so that user errors exit with code 2 and one line on stderr."""

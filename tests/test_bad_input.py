@@ -204,3 +204,11 @@ def test_bad_input_exits_2_with_one_line(results, name):
 
 def test_at_least_twenty_cases():
   assert len(CASES) >= 20
+
+
+def test_user_error_is_one_line_whatever_it_quotes():
+  """A library's exception text can carry a file's own bytes (seen: a fuzzed .sur's unit field
+  with a newline, quoted by surfalize's ValueError); the message stays one line."""
+  from ofjax.errors import UserError
+  e = UserError("f.sur: surfalize cannot read it (ValueError: Unit \n\r\tum does not exist.); fix")
+  assert str(e) == "f.sur: surfalize cannot read it (ValueError: Unit um does not exist.); fix"
