@@ -1,7 +1,7 @@
 """`python experiments/preset_sweep.py`: accuracy of config variants of a preset on one scene.
 
 Each variant (`--variants`, comma list of `preset+component.field=value+...` as in
-benchmarks/train_step.py, e.g. `cpu,cpu+optim.lr_inv_s=0.001`) trains the same scene with the same
+benchmarks/train_step.py, e.g. `cpu,cpu+optim.lr_inv_s=0.01`) trains the same scene with the same
 poses and seed in this process (`ofjax.train.train`, the CLI's loop), exports the mesh at the
 preset's resolution and evaluates it against the scene's truth (`python -m ofjax.eval --poses`,
 so estimated poses are scored in the truth's frame). Measured per variant: training wall time,
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python experiments/preset_sweep.py", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--variants", default="cpu",
-                 help="comma list of preset variants, e.g. cpu,cpu+optim.lr_inv_s=0.001")
+                 help="comma list of preset variants, e.g. cpu,cpu+optim.lr_inv_s=0.01")
   p.add_argument("--scene-dir", type=Path, help="scene to train (default: WORK/scene, synthesised)")
   p.add_argument("--poses", type=Path, help="poses file (default: SCENE/ground_truth/poses.json)")
   p.add_argument("--steps", type=int, help="training steps of every variant (default: its own)")

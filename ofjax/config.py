@@ -135,15 +135,14 @@ PRESETS: dict[str, Config] = {
     # per step: a 2^16-entry table (CPU cache), fewer samples per ray, fewer steps, and a
     # schedule compressed to that step count. Its table gather runs as 4 level groups (the
     # scatter-adds of the gradient then share the cores: 1.08x the step on 2 cores, measured in
-    # benchmarks/README.md). NeuS's variance moves at most ~lr per Adam step, so over 1,200 steps
-    # the paper's lr_inv_s (0.001, set for 20,000) leaves the surface blurred (s ~ 80 where the
-    # data asks for ~260); 10x lets it get there (default scene, 1,200 steps: Chamfer 2.18 ->
-    # 1.56 um, as good as 2,400 steps at 0.001; 0.02 gives the same s; experiments/README.md).
+    # benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001, set for 20,000
+    # steps): 10x it sharpens the default scene (Chamfer 2.18 -> 1.56 um at 1,200 steps) but not
+    # the others (lenses 3.56 -> 4.60 and 5.39 um, circuit and wing +1-5%; experiments/README.md).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
                             cos_anneal_steps=1000, wli_guided_samples=8),
-        optim=OptimConfig(warmup_steps=100, lr_inv_s=0.01),
+        optim=OptimConfig(warmup_steps=100),
         train=TrainConfig(steps=1200, n_rays=512, log_every=50, checkpoint_every=400,
                           mesh_resolution=192),
         preset="cpu",

@@ -1,5 +1,7 @@
 """Preset variants: `preset+component.field=value` specs, and what the presets fix."""
 
+import dataclasses
+
 import pytest
 
 from ofjax import config
@@ -29,18 +31,17 @@ def test_bad_specs_name_themselves(spec):
     config.resolve_spec(spec)
 
 
-def test_cpu_preset_scales_the_variance_rate_to_its_shorter_schedule():
-  """The paper's lr_inv_s is set for 20,000 steps; the cpu preset's 1,200 steps get 10x (measured
-  in experiments/README.md), every other optimiser number stays the paper's but the warm-up."""
+def test_cpu_preset_keeps_the_papers_optimiser_but_the_warm_up():
+  """Only the warm-up is compressed with the schedule; a 10x variance rate was measured and
+  rejected (experiments/README.md: better on the default scene, worse on lenses)."""
   cpu, paper = config.PRESETS["cpu"].optim, config.PRESETS["paper"].optim
-  assert paper.lr_inv_s == 0.001 and cpu.lr_inv_s == 0.01
-  assert (cpu.lr, cpu.b1, cpu.b2, cpu.eps, cpu.decay_to) == (paper.lr, paper.b1, paper.b2,
-                                                               paper.eps, paper.decay_to)
+  assert cpu.warmup_steps == 100 and paper.warmup_steps == 500
+  assert dataclasses.replace(cpu, warmup_steps=paper.warmup_steps) == paper
 
 
 def test_fingerprint_follows_the_resolved_values_not_the_spelling():
   cpu = config.resolve("cpu")
-  assert config.resolve_spec("cpu+optim.lr_inv_s=0.01").fingerprint() == cpu.fingerprint()
-  assert config.resolve_spec("cpu+optim.lr_inv_s=0.001").fingerprint() != cpu.fingerprint()
+  assert config.resolve_spec("cpu+optim.lr_inv_s=0.001").fingerprint() == cpu.fingerprint()
+  assert config.resolve_spec("cpu+optim.lr_inv_s=0.01").fingerprint() != cpu.fingerprint()
   assert config.Config.from_dict(cpu.to_dict()).fingerprint() == cpu.fingerprint()
   assert len(cpu.fingerprint()) == 8 and int(cpu.fingerprint(), 16) >= 0
