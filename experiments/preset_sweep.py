@@ -113,19 +113,20 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   if args.steps is not None and args.steps < 1 or args.workers < 1:
     raise UserError("--steps and --workers must be positive")
+  extra = {"train": {"steps": args.steps, "seed": args.seed}} if args.steps else {
+      "train": {"seed": args.seed}}
+  specs = [s for s in args.variants.split(",") if s]
+  try:  # every variant checked before anything is synthesised or trained
+    fingerprints = [config.resolve_spec(spec, **extra).fingerprint() for spec in specs]
+  except ValueError as e:
+    raise UserError(f"--variants {e}") from None
   scene_dir = args.scene_dir or ensure_scene(args.work)
   poses = args.poses or scene_dir / "ground_truth" / "poses.json"
   if not poses.exists():
     raise UserError(f"{poses}: no poses file; give --poses (e.g. SCENE/poses.json from "
                     "python -m ofjax.associate)")
-  extra = {"train": {"steps": args.steps, "seed": args.seed}} if args.steps else {
-      "train": {"seed": args.seed}}
   jobs = []
-  for spec in [s for s in args.variants.split(",") if s]:
-    try:
-      fp = config.resolve_spec(spec, **extra).fingerprint()
-    except ValueError as e:
-      raise UserError(f"--variants {e}") from None
+  for spec, fp in zip(specs, fingerprints):
     name = f"{fp}_{hashlib.sha256(spec.encode()).hexdigest()[:6]}"
     jobs.append(sweep.Job(scene=scene_dir.name, variant=spec, seed=args.seed,
                           result=str(args.work / "records" / f"{name}.json"),

@@ -53,3 +53,9 @@ def test_unknown_variant_field_is_a_user_error(tiny_scene, tmp_path, capsys):
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and "no_such" in err
   assert not (tmp_path / "records").exists()
+
+
+def test_bad_variant_is_refused_before_any_scene_is_made(tmp_path, capsys):
+  assert preset_sweep.main(["--variants", "cpu,cpu+hash.nosuch=1", "--work", str(tmp_path)]) == 2
+  assert "nosuch" in capsys.readouterr().err
+  assert list(tmp_path.iterdir()) == []
