@@ -69,7 +69,7 @@ class NoSurface(RuntimeError):
   pass
 
 
-def _cli(module: str, *args: str) -> tuple[str, float]:
+def run_cli(module: str, *args: str) -> tuple[str, float]:
   """Runs `python -m ofjax.<module> args`; returns its stdout and seconds; a failure raises."""
   t0 = time.time()
   proc = subprocess.run([sys.executable, "-m", f"ofjax.{module}", *args], capture_output=True,
@@ -80,18 +80,26 @@ def _cli(module: str, *args: str) -> tuple[str, float]:
   return proc.stdout, time.time() - t0
 
 
+def synthesise(scene: str, resolution: str, scene_dir: str | Path) -> float:
+  """`ofjax.synth` of `scene` (synth seed SYNTH_SEED) into scene_dir; returns its seconds.
+
+  Written beside and renamed: a scene directory that exists is complete, even after a kill.
+  """
+  partial = f"{scene_dir}.partial"
+  shutil.rmtree(partial, ignore_errors=True)
+  _, seconds = run_cli("synth", "--scene", scene, "--resolution", resolution, "--seed",
+                       str(SYNTH_SEED), "--out", partial)
+  os.replace(partial, scene_dir)
+  return seconds
+
+
 def prepare(job: sweep.Job) -> dict:
   """Synth (and, for associated poses, associate) one scene into job.params['scene_dir']."""
   scene_dir, stages = job.params["scene_dir"], {}
   if not Path(scene_dir).exists():
-    # Written beside and renamed: a scene directory that exists is complete, even after a kill.
-    partial = f"{scene_dir}.partial"
-    shutil.rmtree(partial, ignore_errors=True)
-    _, stages["synth"] = _cli("synth", "--scene", job.scene, "--resolution",
-                              job.params["resolution"], "--seed", str(SYNTH_SEED), "--out", partial)
-    os.replace(partial, scene_dir)
+    stages["synth"] = synthesise(job.scene, job.params["resolution"], scene_dir)
   if job.params["associate"] and not (Path(scene_dir) / "poses.json").exists():
-    _, stages["associate"] = _cli("associate", scene_dir, "--report", "--seed", str(SYNTH_SEED))
+    _, stages["associate"] = run_cli("associate", scene_dir, "--report", "--seed", str(SYNTH_SEED))
   if not job.params["associate"]:
     return {"stages_s": stages}
   from ofjax.associate.evaluate import scene_pose_errors
@@ -120,13 +128,13 @@ def run_method(job: sweep.Job) -> dict:
   p = job.params
   run_dir, stages, git = Path(p["run_dir"]), {}, git_state()  # the checkout is shared: per run
   if job.variant == "conventional":
-    _, stages["conventional"] = _cli("conventional", p["scene_dir"], "--out", str(run_dir),
+    _, stages["conventional"] = run_cli("conventional", p["scene_dir"], "--out", str(run_dir),
                                      "--poses", p["poses"])
   else:
     steps = ["--steps", str(p["steps"])] if p["steps"] else []
     t0 = time.time()
     try:
-      _, stages["train"] = _cli("train", "--data", p["scene_dir"], "--out", str(run_dir), "--poses",
+      _, stages["train"] = run_cli("train", "--data", p["scene_dir"], "--out", str(run_dir), "--poses",
                                 p["poses"], "--seed", str(job.seed), "--overwrite", "--quiet",
                                 *steps, *TRAIN_FLAGS[job.variant])
     except NoSurface as e:
@@ -144,7 +152,7 @@ def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
   """Evaluates and renders a finished reconstruction in job's run directory; its record's result."""
   p, run_dir = job.params, Path(job.params["run_dir"])
   mesh = run_dir / "mesh.ply"
-  out, stages["eval"] = _cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--json",
+  out, stages["eval"] = run_cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--json",
                              "--out", str(run_dir), *eval_args(job))
   from ofjax import plots
   from ofjax.meshquery import load_mesh, vertex_rgb
@@ -519,7 +527,8 @@ def main(argv=None) -> int:
   # and again after the last, and the report says when they differ.
   git_start = git_state()
   data_work = args.work / f"data_{args.resolution}"
-  work = args.work / f"steps{args.steps or 'preset'}_{args.resolution}_cpu-{preset_fingerprint()}"
+  fingerprint = preset_fingerprint()
+  work = args.work / f"steps{args.steps or 'preset'}_{args.resolution}_cpu-{fingerprint}"
   log = lambda m: print(m, flush=True)  # noqa: E731
   t0 = time.time()
   # A scene synthesised for true poses only is not a finished data job of an associated table.
@@ -559,7 +568,7 @@ def main(argv=None) -> int:
         figures[(ps, s)] = str(path.relative_to(args.out))
   settings = {"argv": argv, "scenes": scenes, "variants": variants, "seeds": seeds, "poses": poses,
               "steps": args.steps, "resolution": args.resolution, "preset": "cpu",
-              "preset_fingerprint": preset_fingerprint(),
+              "preset_fingerprint": fingerprint,
               "full_budget": args.steps is None and args.resolution == "quick"
               and scenes == list(SCENES) and variants == list(VARIANTS) and poses == list(POSE_SOURCES),
               "workers": args.workers, "ray": args.ray, "work": str(work), "machine": sweep.machine(),

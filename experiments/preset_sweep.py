@@ -22,23 +22,18 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py beside this file
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py, ablation.py beside this file
+import ablation  # noqa: E402
 import sweep  # noqa: E402
 
 from ofjax import config, fileio  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _git_commit() -> str:
-  return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
-                        text=True).stdout.strip()
 
 
 def run_variant(job: sweep.Job) -> dict:
@@ -54,16 +49,14 @@ def run_variant(job: sweep.Job) -> dict:
                        meta={"data": p["scene_dir"], "poses": p["poses"]})
   mesh = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
                            resolution=cfg.train.mesh_resolution, units=scene.units)
-  proc = subprocess.run([sys.executable, "-m", "ofjax.eval", "--pred", str(mesh), "--gt",
-                         p["scene_dir"], "--poses", p["poses"], "--json"],
-                        capture_output=True, text=True)
-  if proc.returncode:
-    raise RuntimeError(f"ofjax.eval {mesh}: {proc.stderr.strip()[-sweep.STDOUT_TAIL_CHARS:]}")
-  ev = json.loads(proc.stdout.strip().splitlines()[-1])
+  out, _ = ablation.run_cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--poses",
+                           p["poses"], "--json")
+  ev = json.loads(out.strip().splitlines()[-1])
   last = json.loads((run_dir / train.METRICS).read_text().splitlines()[-1])
   return {"train_s": result.seconds, "wall_s": time.time() - t0, "steps": cfg.train.steps,
           "inv_s": last["inv_s"], "loss_wli": last["loss/wli"], "eval": ev,
-          "fingerprint": cfg.fingerprint(), "commit": _git_commit(), "run_dir": str(run_dir)}
+          "fingerprint": cfg.fingerprint(), "commit": ablation.git_state()["commit"],
+          "run_dir": str(run_dir)}
 
 
 def table(records: list[dict]) -> str:
@@ -86,13 +79,11 @@ def ensure_scene(work: Path) -> Path:
   """WORK/scene, synthesised (default scene, quick, seed 0) when it does not exist yet."""
   scene_dir = work / "scene"
   if not scene_dir.exists():
-    partial = work / "scene.partial"
-    proc = subprocess.run([sys.executable, "-m", "ofjax.synth", "--scene", "seed", "--resolution",
-                           "quick", "--seed", "0", "--out", str(partial)], capture_output=True,
-                          text=True)
-    if proc.returncode:
-      raise UserError(f"ofjax.synth into {partial} failed: {proc.stderr.strip()[-500:]}")
-    partial.rename(scene_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+      ablation.synthesise(ablation.DEFAULT_SCENE, "quick", scene_dir)
+    except RuntimeError as e:
+      raise UserError(f"{scene_dir}: synthesis failed ({e})") from None
   return scene_dir
 
 
@@ -139,7 +130,8 @@ def main(argv=None) -> int:
   text = "\n".join([
       "# Preset sweep", "",
       f"`python experiments/preset_sweep.py {' '.join(sys.argv[1:] if argv is None else argv)}`, "
-      f"commit `{_git_commit()}`; scene `{scene_dir}`, poses `{poses}`, seed {args.seed}.", "",
+      f"commit `{ablation.git_state()['commit']}`; scene `{scene_dir}`, poses `{poses}`, "
+      f"seed {args.seed}.", "",
       f"Machine: {machine['host']}, {machine['platform']}, {machine['cpus']} CPUs; workers "
       f"{args.workers} (train s is wall time with the others running).", "",
       table(records), ""])

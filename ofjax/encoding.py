@@ -23,9 +23,10 @@ All levels and corners are gathered by one advanced index into the table viewed 
 (level offsets l*T), so the reverse-mode gradient w.r.t. the tables is one scatter-add, shared by
 the feature and the Jacobian cotangents (HashConfig.gather_groups > 1 splits the levels into that
 many such gathers and scatters, independent ops for a multi-core CPU). Layout (measured on XLA
-CPU, benchmarks/encoding.py): the gather yields [8 corners, N, L, F] and the corner sum is 8 explicit adds, so features and
-Jacobian come out point-major with no transpose; reductions over a non-minor axis, transposes
-fused into the interpolation, and gathering F scalars instead of one F-row were each slower.
+CPU, benchmarks/encoding.py): the gather yields [8 corners, N, L, F] and the corner sum is 8
+explicit adds, so features and Jacobian come out point-major with no transpose; reductions over a
+non-minor axis, transposes fused into the interpolation, and gathering F scalars instead of one
+F-row were each slower.
 """
 
 from __future__ import annotations
