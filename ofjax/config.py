@@ -52,7 +52,8 @@ class RenderConfig:
   n_samples: int = 64  # uniform samples per ray
   n_importance: int = 64  # hierarchically upsampled samples per ray (no gradient)
   n_importance_steps: int = 4  # rounds of importance upsampling (NeuS uses 4 x 16)
-  init_inv_s: float = 0.3  # log of NeuS's learned inverse std s starts at log(exp(10 * 0.3))
+  # log of NeuS's learned inverse std s (per reference unit) starts at log(exp(10 * 0.3))
+  init_inv_s: float = 0.3
   cos_anneal_steps: int = 20000  # NeuS cos-anneal ratio goes 0 -> 1 over these steps
   wli_guided_samples: int = 0  # extra samples per WLI ray placed around the measured depth
   wli_guided_width: float = 0.02  # half-width (normalised units) of that depth-guided band
@@ -63,10 +64,10 @@ class LossConfig:
   """Loss weights (paper Sec. 3.4 and the reference code); each loss is summed as lambda * loss."""
   lambda_color: float = 1.0  # OM colour MSE
   lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
-  lambda_wli: float = 1.0  # WLI depth MSE in normalised units (voids masked)
+  lambda_wli: float = 1.0  # WLI depth MSE in reference units (TrainConfig.reference_unit; voids masked)
   lambda_eikonal: float = 0.1  # (|grad sdf| - 1)^2 on all samples
   lambda_sparsity: float = 0.01  # exp(-scale * |sdf|) of the reference, on uniform samples
-  sparsity_scale: float = 10.0  # sharpness of the sparsity term
+  sparsity_scale: float = 1.0  # sharpness of the sparsity term, per reference unit of SDF
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +95,12 @@ class TrainConfig:
   max_skipped_in_a_row: int = 20  # divergence guard: this many non-finite steps in a row stop
   mesh_resolution: int = 256  # marching-cubes grid along the longest side of the observed box
   box_margin: float = 0.05  # margin around the WLI points, fraction of the box, before normalising
+  # The length unit of the WLI depth loss, NeuS's s and the sparsity term, as a fraction of the
+  # WLI field of view (the median scan's width). 0.1 is the reference code's unit: its WLI image
+  # spans depth_focal = 10 units, and the paper's weights and s were set in it. 0 measures them
+  # in the normalised box instead (earlier ofjax: ~7x coarser on the synthetic scenes, so the
+  # depth loss weighed ~45x less against the colour loss than in the reference).
+  reference_unit: float = 0.1
 
 
 @dataclasses.dataclass(frozen=True)

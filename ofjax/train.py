@@ -174,15 +174,26 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
       optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels))
 
 
-def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns):
+def reference_scale(data: TrainData, cfg: Config):
+  """[] reference units per normalised unit (TrainConfig.reference_unit; 1 when that is 0)."""
+  if cfg.train.reference_unit <= 0:
+    return jnp.float32(1.0)
+  fov = jnp.median(data.wli_pixel[:, 0] * data.wli_hw[:, 1])  # scan width, normalised units
+  return 1.0 / (fov * cfg.train.reference_unit)
+
+
+def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns, unit=1.0):
   """Renders the batch and returns (total, {"loss/<name>": value, ...}).
 
   field_fns: (params, cfg) -> (geometry_fn, color_fn, sdf_fn) as fields.field_fns (benchmarks swap
-  in a nested-autodiff reference). The batch's WLI rays (its first ray_split(cfg)[0]) are not
+  in a nested-autodiff reference). unit: [] reference units per normalised unit
+  (reference_scale): the depth residual, the SDF in the sparsity term and NeuS's s are measured
+  in it, as in the reference code. The batch's WLI rays (its first ray_split(cfg)[0]) are not
   coloured: only OM rays enter the colour losses.
   """
+  # sigmoid(s_ref * sdf_ref) with sdf_ref = unit * sdf: s per normalised unit is unit * s_ref.
   out = render.render_rays(*field_fns(params, cfg), batch["o"], batch["d"], batch["near"],
-                           batch["far"], key, fields.inv_s(params),
+                           batch["far"], key, unit * fields.inv_s(params),
                            render.cos_anneal_ratio(step, cfg.render), cfg.render,
                            guide=batch["depth"], has_guide=batch["wli_ok"],
                            n_uncolored=ray_split(cfg)[0])
@@ -190,9 +201,9 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
   terms = {
       "color": losses.color(out["color"], batch["rgb"], batch["om_ok"]),
       "residual": losses.residual(out["color_res"], batch["om_ok"]),
-      "wli": losses.wli(out["depth"], batch["depth"], batch["wli_ok"]),
+      "wli": losses.wli(unit * out["depth"], unit * batch["depth"], batch["wli_ok"]),
       "eikonal": losses.eikonal(out["grad"], batch["hit"]),
-      "sparsity": losses.sparsity(out["sdf"], batch["hit"], lc.sparsity_scale),
+      "sparsity": losses.sparsity(unit * out["sdf"], batch["hit"], lc.sparsity_scale),
   }
   total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
   logs = {f"loss/{k}": v for k, v in terms.items()}
@@ -218,8 +229,8 @@ def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
     k_batch, k_render = jax.random.split(key)
     batch = parallel.shard_rays(sample_batch(data, k_batch, cfg), mesh)
     chex.assert_shape(batch["o"], (cfg.train.n_rays, 3))
-    (_, logs), grads = jax.value_and_grad(compute_losses, has_aux=True)(params, batch, k_render,
-                                                                       step, cfg, field_fns)
+    (_, logs), grads = jax.value_and_grad(compute_losses, has_aux=True)(
+        params, batch, k_render, step, cfg, field_fns, reference_scale(data, cfg))
     updates, opt_state = optimizer.update(grads, opt_state, params)
     params = optax.apply_updates(params, updates)
     return params, opt_state, logs

@@ -67,6 +67,36 @@ def test_lr_schedule_warms_up_then_decays_to_a_tenth():
   np.testing.assert_allclose(float(s(mid)), 0.01 * 0.1**((mid - 500) / 19500), rtol=1e-4)
 
 
+def test_reference_scale_is_ten_units_across_the_median_scan(cap):
+  """The reference code's WLI image spans 10 of its units: float64 NumPy from the scene in um."""
+  scene, _, norm = cap
+  data = train.prepare_data(scene, norm)
+  widths_um = np.array([s.shape[1] * s.pixel_size[0] for s in scene.wli], np.float64)
+  expect = norm.scale / (np.median(widths_um) / 10.0)
+  np.testing.assert_allclose(float(train.reference_scale(data, resolve("cpu"))), expect, rtol=1e-5)
+  assert float(train.reference_scale(data, resolve("cpu", train={"reference_unit": 0.0}))) == 1.0
+
+
+def test_losses_are_measured_in_the_reference_unit(cap):
+  """unit u scales the depth residual and the SDF, and multiplies s: the same as unit 1 with
+  the depth loss times u^2, the sparsity scale times u and the variance shifted by log(u) / 10."""
+  scene, _, norm = cap
+  cfg = resolve("cpu", **SMALL)
+  data = train.prepare_data(scene, norm)
+  batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
+  params = fields.init_params(jax.random.PRNGKey(0), cfg)
+  u = 6.5
+  _, scaled = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg, unit=u)
+  shifted = dict(params, variance=params["variance"] + np.log(u) / 10.0)
+  plain_cfg = dataclasses.replace(
+      cfg, loss=dataclasses.replace(cfg.loss, sparsity_scale=cfg.loss.sparsity_scale * u))
+  _, plain = train.compute_losses(shifted, batch, jax.random.PRNGKey(2), 300, plain_cfg)
+  np.testing.assert_allclose(float(scaled["loss/wli"]), u**2 * float(plain["loss/wli"]), rtol=1e-4)
+  for k in ("loss/color", "loss/residual", "loss/eikonal", "loss/sparsity"):
+    np.testing.assert_allclose(float(scaled[k]), float(plain[k]), rtol=1e-4, err_msg=k)
+  assert float(scaled["loss/wli"]) > 0
+
+
 def test_step_shapes_and_loss_decrease(cap):
   scene, _, norm = cap
   cfg = resolve("cpu", **SMALL)
