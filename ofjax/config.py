@@ -142,9 +142,9 @@ PRESETS: dict[str, Config] = {
     # per step: a 2^16-entry table (CPU cache), fewer samples per ray, fewer steps, and a
     # schedule compressed to that step count. Its table gather runs as 4 level groups (the
     # scatter-adds of the gradient then share the cores: 1.08x the step on 2 cores, measured in
-    # benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001, set for 20,000
-    # steps): 10x it sharpens the default scene (Chamfer 2.18 -> 1.56 um at 1,200 steps) but not
-    # the others (lenses 3.56 -> 4.60 and 5.39 um, circuit and wing +1-5%; experiments/README.md).
+    # benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001); like the depth
+    # loss it is measured in the reference's unit (TrainConfig.reference_unit), which took the
+    # default scene from 2.18 to 1.46 um at 1,200 steps (experiments/README.md, all five scenes).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
