@@ -9,6 +9,9 @@ rays, each drawn uniformly over the pixels of its modality. Sampling is keyed by
 
 Coordinates inside training are normalised (scene.Normalization): WLI depths and pixel sizes are
 divided by the scale, camera centres shifted and scaled; rotations and OM intrinsics are unchanged.
+The losses that have a length in them (WLI depth, sparsity) and NeuS's s are measured in the
+reference code's unit instead (`reference_scale`: a tenth of the WLI field of view), so the
+paper's weights keep the balance they had there whatever the box's size.
 """
 
 from __future__ import annotations
