@@ -33,6 +33,9 @@ class HashConfig:
                        f"{self.n_levels}")
 
 
+INIT_SHAPES = ("sphere", "plane")
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
   """SDF MLP, global colour MLP G and residual colour MLP R (DESIGN.md, supplementary A)."""
@@ -42,8 +45,16 @@ class ModelConfig:
   color_hidden: int = 64  # width of the colour MLPs' hidden layers
   color_layers: int = 2  # number of hidden layers of each colour MLP
   sh_degree: int = 4  # spherical-harmonics degree of the view direction fed to R (16 coefficients)
-  sphere_init_radius: float = 0.5  # geometric init: the SDF starts as a sphere of this radius
+  # Geometric init of the SDF: "sphere" (SAL/NeuS and the reference: a sphere of
+  # sphere_init_radius about the box centre) or "plane" (the WLI's median height plane, positive on
+  # the objective's side: a sample on a substrate seen from above).
+  init_shape: str = "sphere"
+  sphere_init_radius: float = 0.5  # radius of the "sphere" init (normalised units)
   residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
+
+  def __post_init__(self):
+    if self.init_shape not in INIT_SHAPES:
+      raise ValueError(f"model.init_shape {self.init_shape!r}: use one of {', '.join(INIT_SHAPES)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,8 +156,13 @@ PRESETS: dict[str, Config] = {
     # benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001); like the depth
     # loss it is measured in the reference's unit (TrainConfig.reference_unit), which took the
     # default scene from 2.18 to 1.46 um at 1,200 steps (experiments/README.md, all five scenes).
+    # The SDF starts as the WLI's median height plane instead of the reference's sphere: without
+    # depth (OM only) the sphere collapses into a field that is solid everywhere, which renders
+    # every OM ray's colour at its box entry and has no surface; from the plane the same data form
+    # one, and the fused model trains the same (experiments/README.md).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
+        model=ModelConfig(init_shape="plane"),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
                             cos_anneal_steps=1000, wli_guided_samples=8),
         optim=OptimConfig(warmup_steps=100),
@@ -163,6 +179,8 @@ def resolve(preset: str = "cpu", **overrides: dict[str, Any]) -> Config:
     raise KeyError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
   cfg = PRESETS[preset]
   for comp, fields in overrides.items():
+    # JSON lists (a spec's or a config.json's) become tuples: a Config is a hashable jit argument.
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
     cfg = dataclasses.replace(cfg, **{comp: dataclasses.replace(getattr(cfg, comp), **fields)})
   return cfg
 

@@ -110,15 +110,46 @@ def _nets(cfg: Config):
           ColorNet(m.color_hidden, m.color_layers), ColorNet(m.color_hidden, m.color_layers))
 
 
-def init_params(key, cfg: Config) -> dict:
-  """All trainable parameters: hash tables, the three MLPs and NeuS's variance."""
+def _plane_init(sdf_params: dict, up, level, layers: int) -> dict:
+  """The SDF network as the plane sdf(x) = up . x - level, exactly, with the shapes unchanged.
+
+  Two hidden units carry relu(up . x - level) and relu(level - up . x) through every hidden layer
+  and the output subtracts them; every other unit's SDF output weight starts at zero (the feature
+  outputs keep their random init, and the zero weights get gradients from the first step).
+  """
+  p = jax.tree.map(jnp.asarray, sdf_params)
+  up = jnp.asarray(up, jnp.float32)
+  k0 = p["Dense_0"]["kernel"].at[:, :2].set(0.0)
+  p["Dense_0"]["kernel"] = k0.at[:3, 0].set(up).at[:3, 1].set(-up)
+  p["Dense_0"]["bias"] = p["Dense_0"]["bias"].at[0].set(-level).at[1].set(level)
+  for i in range(1, layers):  # deeper hidden layers pass the two units on unchanged
+    k = p[f"Dense_{i}"]["kernel"].at[:, :2].set(0.0)
+    p[f"Dense_{i}"]["kernel"] = k.at[0, 0].set(1.0).at[1, 1].set(1.0)
+    p[f"Dense_{i}"]["bias"] = p[f"Dense_{i}"]["bias"].at[:2].set(0.0)
+  out = p[f"Dense_{layers}"]
+  out["kernel"] = out["kernel"].at[:, 0].set(0.0).at[0, 0].set(1.0).at[1, 0].set(-1.0)
+  out["bias"] = out["bias"].at[0].set(0.0)
+  return p
+
+
+def init_params(key, cfg: Config, substrate=None) -> dict:
+  """All trainable parameters: hash tables, the three MLPs and NeuS's variance.
+
+  substrate: (up [3] unit vector, level []) of the plane the "plane" init starts from
+  (ModelConfig.init_shape), in normalised units; None is the box's mid-plane z = 0 (enough for a
+  template whose values a checkpoint replaces).
+  """
   k_tab, k_sdf, k_g, k_r = jax.random.split(key, 4)
   sdf_net, g_net, r_net = _nets(cfg)
   n_enc = cfg.hash.n_levels * cfg.hash.n_features
   geo_in = 3 + 3 + cfg.model.feature_dim
+  sdf = sdf_net.init(k_sdf, jnp.zeros((1, 3 + n_enc)))["params"]
+  if cfg.model.init_shape == "plane":
+    up, level = substrate if substrate is not None else ((0.0, 0.0, 1.0), 0.0)
+    sdf = _plane_init(sdf, up, level, cfg.model.sdf_layers)
   return {
       "tables": encoding.init_tables(k_tab, cfg.hash),
-      "sdf": sdf_net.init(k_sdf, jnp.zeros((1, 3 + n_enc)))["params"],
+      "sdf": sdf,
       "color": g_net.init(k_g, jnp.zeros((1, geo_in)))["params"],
       "residual": r_net.init(k_r, jnp.zeros((1, geo_in + cfg.model.sh_degree**2)))["params"],
       # NeuS: inverse std s = exp(10 * variance).

@@ -52,6 +52,7 @@ class TrainData(NamedTuple):
   om_hw: jax.Array  # [No, 2]
   up: jax.Array  # [3] unit vector from the sample into the WLI objective (minus the top scan's axis)
   floor: jax.Array  # [] lowest WLI point along `up`: the substrate level
+  level: jax.Array  # [] median WLI point along `up`: the height of the "plane" init
 
 
 def _stack_padded(maps: list[np.ndarray], fill) -> np.ndarray:
@@ -99,6 +100,7 @@ def prepare_data(scene: scene_lib.Scene, norm: scene_lib.Normalization) -> Train
       om_hw=jnp.asarray([o.shape for o in scene.om], jnp.float32),
       up=jnp.asarray(up, jnp.float32),
       floor=jnp.asarray(float(np.min(pts @ up)), jnp.float32),
+      level=jnp.asarray(float(np.median(pts @ up)), jnp.float32),
   )
 
 
@@ -304,7 +306,7 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
   box = observed_box(scene, norm, tc.box_margin)
   data = prepare_data(scene, norm)
   optimizer = make_optimizer(cfg)
-  params = fields.init_params(jax.random.PRNGKey(tc.seed), cfg)
+  params = fields.init_params(jax.random.PRNGKey(tc.seed), cfg, substrate=(data.up, data.level))
   opt_state = optimizer.init(params)
   start = 0
   if resume and run_dir is not None:

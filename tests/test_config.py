@@ -24,6 +24,16 @@ def test_resolve_spec_applies_the_spec_then_the_extra_overrides():
   assert config.resolve_spec("paper") == config.PRESETS["paper"]
 
 
+def test_list_values_resolve_to_a_hashable_config():
+  # A Config is a static jit argument (export's SDF function): a spec's JSON list must become the
+  # field's tuple, or the first jitted call with it fails.
+  cfg = config.resolve_spec('cpu+train.modalities=["om"]+model.init_shape=plane')
+  assert cfg.train.modalities == ("om",) and cfg.model.init_shape == "plane"
+  assert hash(cfg) == hash(config.resolve("cpu", train={"modalities": ("om",)},
+                                          model={"init_shape": "plane"}))
+  assert cfg.fingerprint() == config.Config.from_dict(cfg.to_dict()).fingerprint()
+
+
 @pytest.mark.parametrize("spec", ["cpu+hash", "cpu+log2_table_size=14", "nosuch",
                                   "cpu+hash.no_such_field=1", "cpu+nosuch.field=1"])
 def test_bad_specs_name_themselves(spec):

@@ -7,6 +7,7 @@ import jax
 from jax import enable_x64
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from ofjax import fields
 from ofjax.config import Config, HashConfig, ModelConfig
@@ -53,6 +54,30 @@ def test_sphere_initialisation():
   inside = fields.sdf_value(p, jnp.asarray(0.1 * dirs, jnp.float32), CFG)
   outside = fields.sdf_value(p, jnp.asarray(0.95 * dirs, jnp.float32), CFG)
   assert float(inside.max()) < 0 < float(outside.min())
+
+
+def test_plane_initialisation_is_the_substrate_plane():
+  # The "plane" init is exactly sdf(x) = up . x - level (a NumPy float64 reference), its gradient
+  # is up (eikonal 0), and deeper SDF MLPs carry the plane through their extra layers.
+  rng = np.random.default_rng(2)
+  up = rng.normal(size=3)
+  up /= np.linalg.norm(up)
+  level = -0.23
+  x = rng.uniform(-1, 1, (300, 3))
+  for layers in (1, 2):
+    cfg = dataclasses.replace(CFG, model=ModelConfig(init_shape="plane", sdf_layers=layers))
+    p = fields.init_params(jax.random.PRNGKey(0), cfg, substrate=(up, level))
+    sdf, grad, _ = fields.geometry(p, jnp.asarray(x, jnp.float32), cfg)
+    np.testing.assert_allclose(np.asarray(sdf), x @ up - level, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(grad), np.broadcast_to(up, x.shape), atol=1e-5)
+    sphere = fields.init_params(jax.random.PRNGKey(0), dataclasses.replace(cfg, model=ModelConfig(
+        sdf_layers=layers)))
+    chex.assert_trees_all_equal_shapes_and_dtypes(p, sphere)
+
+
+def test_unknown_init_shape_is_refused():
+  with pytest.raises(ValueError, match="init_shape"):
+    ModelConfig(init_shape="cube")
 
 
 def test_spherical_harmonics_are_orthonormal():
