@@ -37,7 +37,8 @@ def _sdf_first_layer_init(n_xyz: int):
 
 
 class SDFNet(nn.Module):
-  """MLP [x, hash(x)] -> [sdf, f] with geometric (sphere) initialisation."""
+  """MLP [x, hash(x)] -> [sdf, f] with geometric (sphere) initialisation (init_params may replace
+  it by the plane, ModelConfig.init_shape)."""
   hidden: int
   layers: int
   feature_dim: int
