@@ -114,6 +114,12 @@ class TrainConfig:
   reference_unit: float = 0.1
 
 
+def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
+  """Field values with JSON lists (a spec's or a config.json's) as tuples: a Config is a hashable
+  jit argument, and its tuple fields must compare equal to what was written."""
+  return {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
   hash: HashConfig = HashConfig()
@@ -132,11 +138,7 @@ class Config:
     parts = {}
     for name, cls in (("hash", HashConfig), ("model", ModelConfig), ("render", RenderConfig),
                       ("loss", LossConfig), ("optim", OptimConfig), ("train", TrainConfig)):
-      sub = dict(d.get(name, {}))
-      for f in dataclasses.fields(cls):
-        if f.name in sub and isinstance(sub[f.name], list):
-          sub[f.name] = tuple(sub[f.name])
-      parts[name] = cls(**sub)
+      parts[name] = cls(**json_tuples(d.get(name, {})))
     return Config(preset=d.get("preset", "custom"), **parts)
 
   def dumps(self) -> str:
@@ -179,9 +181,8 @@ def resolve(preset: str = "cpu", **overrides: dict[str, Any]) -> Config:
     raise KeyError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
   cfg = PRESETS[preset]
   for comp, fields in overrides.items():
-    # JSON lists (a spec's or a config.json's) become tuples: a Config is a hashable jit argument.
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
-    cfg = dataclasses.replace(cfg, **{comp: dataclasses.replace(getattr(cfg, comp), **fields)})
+    cfg = dataclasses.replace(cfg, **{comp: dataclasses.replace(getattr(cfg, comp),
+                                                                **json_tuples(fields))})
   return cfg
 
 

@@ -85,7 +85,7 @@ def prepare_data(scene: scene_lib.Scene, norm: scene_lib.Normalization) -> Train
   axes = np.stack([s.c2w[:3, 2] / np.linalg.norm(s.c2w[:3, 2]) for s in scene.wli])
   # The scan whose axis is closest to the mean axis is the top scan; "up" points against it.
   up = -axes[np.argmax(axes @ axes.mean(0))]
-  pts = norm.to_norm(scene.wli_points(stride=2))
+  heights = norm.to_norm(scene.wli_points(stride=2)) @ up  # [N] WLI points along up
   return TrainData(
       wli_depth=jnp.asarray(_stack_padded(depth, 0.0)),
       wli_valid=jnp.asarray(_stack_padded(valid, False)),
@@ -99,8 +99,8 @@ def prepare_data(scene: scene_lib.Scene, norm: scene_lib.Normalization) -> Train
       om_K=jnp.asarray(np.stack([o.K for o in scene.om]), jnp.float32),
       om_hw=jnp.asarray([o.shape for o in scene.om], jnp.float32),
       up=jnp.asarray(up, jnp.float32),
-      floor=jnp.asarray(float(np.min(pts @ up)), jnp.float32),
-      level=jnp.asarray(float(np.median(pts @ up)), jnp.float32),
+      floor=jnp.asarray(float(np.min(heights)), jnp.float32),
+      level=jnp.asarray(float(np.median(heights)), jnp.float32),
   )
 
 
