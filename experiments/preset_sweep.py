@@ -6,7 +6,9 @@ poses and seed in this process (`ofjax.train.train`, the CLI's loop), exports th
 preset's resolution and evaluates it against the scene's truth (`python -m ofjax.eval --poses`,
 so estimated poses are scored in the truth's frame). Measured per variant: training wall time,
 NeuS's final inverse std s, the last logged WLI depth loss, Chamfer (accuracy, completeness),
-F-scores and albedo PSNR. This is how a preset's numbers are chosen: a lever is kept when its
+F-scores and albedo PSNR. `--steps` shortens every variant as the train CLI's `--steps` does
+(`config.with_steps`: cos-anneal and warm-up shrink with the run), so a sweep at 600 steps trains
+what the ablation's 600-step runs train. This is how a preset's numbers are chosen: a lever is kept when its
 accuracy at equal training time is better, on the scene and then on the ablation's others.
 
 --scene-dir defaults to WORK/scene, synthesised (default scene, quick) when absent; --poses
@@ -36,12 +38,18 @@ from ofjax.errors import UserError, cli  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def variant_config(spec: str, seed: int, steps: int | None) -> config.Config:
+  """The resolved Config of a variant; `steps` shortens it as the train CLI's --steps does."""
+  cfg = config.resolve_spec(spec, train={"seed": seed})
+  return cfg if steps is None else config.with_steps(cfg, steps)
+
+
 def run_variant(job: sweep.Job) -> dict:
   """Trains, exports and evaluates one variant (a module-level function: sweep pickles it)."""
   from ofjax import export, train
   from ofjax import io as ofio
   p = job.params
-  cfg = config.resolve_spec(job.variant, **p["extra"])
+  cfg = variant_config(job.variant, p["seed"], p["steps"])
   scene = ofio.load(p["scene_dir"], poses=p["poses"])
   run_dir = Path(p["run_dir"])
   t0 = time.time()
@@ -104,11 +112,9 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   if args.steps is not None and args.steps < 1 or args.workers < 1:
     raise UserError("--steps and --workers must be positive")
-  extra = {"train": {"steps": args.steps, "seed": args.seed}} if args.steps else {
-      "train": {"seed": args.seed}}
   specs = [s for s in args.variants.split(",") if s]
   try:  # every variant checked before anything is synthesised or trained
-    fingerprints = [config.resolve_spec(spec, **extra).fingerprint() for spec in specs]
+    fingerprints = [variant_config(spec, args.seed, args.steps).fingerprint() for spec in specs]
   except ValueError as e:
     raise UserError(f"--variants {e}") from None
   scene_dir = args.scene_dir or ensure_scene(args.work)
@@ -121,7 +127,8 @@ def main(argv=None) -> int:
     name = f"{fp}_{hashlib.sha256(spec.encode()).hexdigest()[:6]}"
     jobs.append(sweep.Job(scene=scene_dir.name, variant=spec, seed=args.seed,
                           result=str(args.work / "records" / f"{name}.json"),
-                          params={"scene_dir": str(scene_dir), "poses": str(poses), "extra": extra,
+                          params={"scene_dir": str(scene_dir), "poses": str(poses),
+                                  "seed": args.seed, "steps": args.steps,
                                   "run_dir": str(args.work / "runs" / name),
                                   "progress": not args.quiet and args.workers == 1}))
   records = sweep.run_jobs(jobs, run_variant, workers=args.workers,

@@ -225,3 +225,14 @@ def resolve_spec(spec: str, **extra: dict[str, Any]) -> Config:
     return resolve(name, **over)
   except (KeyError, TypeError, AttributeError) as e:
     raise ValueError(f"{spec!r}: {e}; use a preset name and existing config fields") from None
+
+
+def with_steps(cfg: Config, steps: int) -> Config:
+  """cfg trained for `steps` steps with its schedule's shape: a shorter run ends cos-anneal with it
+  at the latest and warms up for at most a tenth of it (the CLI's --steps; sweeps use the same)."""
+  return dataclasses.replace(
+      cfg, train=dataclasses.replace(cfg.train, steps=steps),
+      render=dataclasses.replace(cfg.render,
+                                 cos_anneal_steps=min(cfg.render.cos_anneal_steps, steps)),
+      optim=dataclasses.replace(cfg.optim,
+                                warmup_steps=min(cfg.optim.warmup_steps, max(steps // 10, 1))))

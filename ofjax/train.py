@@ -33,7 +33,7 @@ import optax
 
 from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, render
 from ofjax import scene as scene_lib
-from ofjax.config import Config, resolve, PRESETS
+from ofjax.config import Config, resolve, with_steps, PRESETS
 from ofjax.errors import UserError, cli
 
 MODALITIES = ("wli", "om")
@@ -420,14 +420,7 @@ def config_from_args(args) -> Config:
   if args.no_residual:
     over["model"] = {"residual": False}
   cfg = resolve(args.preset, **over)
-  if args.steps is not None:
-    # A shorter run keeps the preset's schedule shape: cos-anneal ends with the run at the latest.
-    cfg = dataclasses.replace(cfg, render=dataclasses.replace(
-        cfg.render, cos_anneal_steps=min(cfg.render.cos_anneal_steps, args.steps)),
-                              optim=dataclasses.replace(
-                                  cfg.optim, warmup_steps=min(cfg.optim.warmup_steps,
-                                                              max(args.steps // 10, 1))))
-  return cfg
+  return cfg if args.steps is None else with_steps(cfg, args.steps)
 
 
 def resume_config(run_dir: Path, cfg: Config) -> Config:

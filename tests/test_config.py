@@ -55,3 +55,15 @@ def test_fingerprint_follows_the_resolved_values_not_the_spelling():
   assert config.resolve_spec("cpu+optim.lr_inv_s=0.01").fingerprint() != cpu.fingerprint()
   assert config.Config.from_dict(cpu.to_dict()).fingerprint() == cpu.fingerprint()
   assert len(cpu.fingerprint()) == 8 and int(cpu.fingerprint(), 16) >= 0
+
+
+def test_with_steps_shortens_the_schedule_with_the_run():
+  cfg = config.resolve("cpu")
+  short = config.with_steps(cfg, 600)
+  assert (short.train.steps, short.render.cos_anneal_steps, short.optim.warmup_steps) == (600, 600,
+                                                                                         60)
+  # A longer run keeps the preset's cos-anneal and warm-up lengths.
+  long = config.with_steps(cfg, 5000)
+  assert (long.train.steps, long.render.cos_anneal_steps, long.optim.warmup_steps) == (
+      5000, cfg.render.cos_anneal_steps, cfg.optim.warmup_steps)
+  assert dataclasses.replace(short, train=cfg.train, render=cfg.render, optim=cfg.optim) == cfg

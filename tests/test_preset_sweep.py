@@ -59,3 +59,11 @@ def test_bad_variant_is_refused_before_any_scene_is_made(tmp_path, capsys):
   assert preset_sweep.main(["--variants", "cpu,cpu+hash.nosuch=1", "--work", str(tmp_path)]) == 2
   assert "nosuch" in capsys.readouterr().err
   assert list(tmp_path.iterdir()) == []
+
+
+def test_steps_shorten_a_variant_as_the_train_cli_does():
+  from ofjax import train
+  args = train.build_parser().parse_args(["--data", "scene", "--out", "run", "--steps", "600",
+                                          "--seed", "3"])
+  assert preset_sweep.variant_config("cpu", 3, 600) == train.config_from_args(args)
+  assert preset_sweep.variant_config("cpu", 3, 600).render.cos_anneal_steps == 600
