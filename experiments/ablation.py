@@ -418,6 +418,21 @@ def figure(path: Path, scene: str, records: list[dict]) -> None:
   plots.save(fig, path)
 
 
+def commits_line(records: list[dict]) -> str:
+  """Which commits the runs ran at: the sweep keeps a finished run while its job (scene, variant,
+  seed, config fingerprint) is unchanged, so a table can hold runs of several commits."""
+  by_commit: dict[str, dict[str, int]] = {}
+  for r in records:
+    commit = r.get("result", {}).get("git", {}).get("commit")
+    if commit:
+      variants = by_commit.setdefault(commit[:7], {})
+      variants[r["job"]["variant"]] = variants.get(r["job"]["variant"], 0) + 1
+  parts = [f"`{c}` {sum(v.values())} (" + ", ".join(f"{LABELS.get(k, k)} {n}" for k, n in v.items())
+           + ")" for c, v in by_commit.items()]
+  return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
+          "unchanged): " + "; ".join(parts) + ".")
+
+
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:
   scenes_all = settings["scenes"]
   lines = ["# Ablation (OpticFusion Table 1) on ofjax's synthetic scenes", "",
@@ -428,7 +443,7 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
            + ("" if settings["git_at_end"] == settings["git"] else
               f" The checkout changed during the run (at the end: `{settings['git_at_end']['commit']}`"
               f", uncommitted {settings['git_at_end']['uncommitted_code']}); stages that started "
-              "later ran the later code.") + "", "",
+              "later ran the later code.") + "", "", commits_line(records), "",
            f"Budget: training steps {settings['steps'] or 'the cpu preset default'}, synth "
            f"resolution `{settings['resolution']}`, cpu preset "
            f"(fingerprint `{settings.get('preset_fingerprint', '-')}`)"

@@ -8,8 +8,9 @@ so estimated poses are scored in the truth's frame). Measured per variant: train
 NeuS's final inverse std s, the last logged WLI depth loss, Chamfer (accuracy, completeness),
 F-scores and albedo PSNR. `--steps` shortens every variant as the train CLI's `--steps` does
 (`config.with_steps`: cos-anneal and warm-up shrink with the run), so a sweep at 600 steps trains
-what the ablation's 600-step runs train. This is how a preset's numbers are chosen: a lever is kept when its
-accuracy at equal training time is better, on the scene and then on the ablation's others.
+what the ablation's 600-step runs train. This is how a preset's numbers are chosen: a lever is
+kept when its accuracy at equal training time is better, on the scene and then on the ablation's
+others.
 
 --scene-dir defaults to WORK/scene, synthesised (default scene, quick) when absent; --poses
 defaults to the scene's true poses (ground_truth/poses.json), so pose errors do not mix in.

@@ -153,9 +153,9 @@ PRESETS: dict[str, Config] = {
     "paper": Config(),
     # The cpu preset keeps the paper's architecture and, but for the residual's, its loss weights,
     # and shrinks what sets the cost per step: a 2^16-entry table (CPU cache), fewer samples per
-    # ray, fewer steps, and a schedule compressed to that step count. Its table gather runs as 4 level groups (the
-    # scatter-adds of the gradient then share the cores: 1.08x the step on 2 cores, measured in
-    # benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001); like the depth
+    # ray, fewer steps, and a schedule compressed to that step count. Its table gather runs as 4
+    # level groups (the scatter-adds of the gradient then share the cores: 1.08x the step on 2
+    # cores, measured in benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001); like the depth
     # loss it is measured in the reference's unit (TrainConfig.reference_unit), which took the
     # default scene from 2.18 to 1.46 um at 1,200 steps (experiments/README.md, all five scenes).
     # The SDF starts as the WLI's median height plane instead of the reference's sphere: without
