@@ -155,19 +155,19 @@ PRESETS: dict[str, Config] = {
     # and shrinks what sets the cost per step: a 2^16-entry table (CPU cache), fewer samples per
     # ray, fewer steps, and a schedule compressed to that step count. Its table gather runs as 4
     # level groups (the scatter-adds of the gradient then share the cores: 1.08x the step on 2
-    # cores, measured in benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s 0.001); like the depth
-    # loss it is measured in the reference's unit (TrainConfig.reference_unit), which took the
-    # default scene from 2.18 to 1.46 um at 1,200 steps (experiments/README.md, all five scenes).
+    # cores, measured in benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s
+    # 0.001); like the depth loss it is measured in the reference's unit
+    # (TrainConfig.reference_unit), which took the default scene from 2.18 to 1.46 um at 1,200
+    # steps (experiments/README.md, all five scenes).
     # The SDF starts as the WLI's median height plane instead of the reference's sphere: without
     # depth (OM only) the sphere collapses into a field that is solid everywhere, which renders
     # every OM ray's colour at its box entry and has no surface; from the plane the same data form
     # one, and the fused model trains the same (experiments/README.md).
     # The residual colour's L2 weighs 10x the paper's: at 0.001 over this short schedule the
     # view-dependent branch kept part of the diffuse colour, which the mesh (coloured by G alone)
-    # then lacks (circuit's albedo 12.7 dB against 21.5 without the branch). Screened on the five
-    # scenes at 600 steps, 0.01 raised the albedo by 0.2 to 8.3 dB at 0.92-1.19x the Chamfer
-    # (lenses' seed spread alone is 0.2 um); the ablation is the full comparison
-    # (experiments/README.md).
+    # then lacks (circuit's albedo 12.7 dB against 21.5 without the branch). In the 600-step
+    # ablation 0.01 raised the fused albedo by 1.3 to 8.3 dB on four scenes (sensor -0.3) at
+    # 0.92-1.04x the Chamfer (experiments/README.md).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
         model=ModelConfig(init_shape="plane"),
