@@ -408,7 +408,11 @@ def figure(path: Path, scene: str, records: list[dict]) -> None:
   for col, v in enumerate(methods):
     for row, name in enumerate(("preview.png", "mesh_completeness.png")):
       ax = fig.add_subplot(2, len(methods), row * len(methods) + col + 1)
-      ax.imshow(mpimg.imread(runs[v] / name))
+      if (runs[v] / name).is_file():
+        ax.imshow(mpimg.imread(runs[v] / name))
+      else:  # a record kept from an earlier run (`reused_from`) whose directory is not here
+        ax.text(0.5, 0.5, f"kept from an earlier run:\n{runs[v].name}\nnot on this machine",
+                ha="center", va="center", wrap=True)
       ax.set_axis_off()
       if row == 0:
         ax.set_title(LABELS[v])

@@ -145,7 +145,7 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
   n_enc = cfg.hash.n_levels * cfg.hash.n_features
   geo_in = 3 + 3 + cfg.model.feature_dim
   sdf = sdf_net.init(k_sdf, jnp.zeros((1, 3 + n_enc)))["params"]
-  if cfg.model.init_shape == "plane":
+  if cfg.model.init_shape in ("plane", "wli"):  # "wli" fits the plane to the WLI (ofjax.prefit)
     up, level = substrate if substrate is not None else ((0.0, 0.0, 1.0), 0.0)
     sdf = _plane_init(sdf, up, level, cfg.model.sdf_layers)
   return {

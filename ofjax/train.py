@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, render
+from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit, render
 from ofjax import scene as scene_lib
 from ofjax.config import Config, resolve, with_steps, PRESETS
 from ofjax.errors import UserError, cli
@@ -313,6 +313,14 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
     state = checkpoint.restore(run_dir, params, opt_state)
     if state is not None:
       start, params, opt_state = state[0], *jax.device_put(state[1:])
+  prefit_logs = {}
+  if cfg.model.init_shape == "wli" and "wli" not in tc.modalities:
+    raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does not "
+                    "train on (train.modalities); use init_shape 'plane'")
+  if cfg.model.init_shape == "wli" and start == 0:
+    fitted = prefit.fit(params, *prefit.oriented_cloud(scene, norm), cfg,
+                        reference_scale(data, cfg), tc.seed, progress)
+    params, prefit_logs = fitted.params, {"prefit": {"seconds": fitted.seconds, **fitted.losses}}
   step_fn = create_train_step(cfg, optimizer)
 
   lines: list[str] = []
@@ -327,7 +335,7 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
       fileio.write_json(run_dir / "config.json", {
           "config": cfg.to_dict(), "units": scene.units,
           "normalization": dataclasses.asdict(norm), "observed_box": box,
-          "jax": jax.__version__, "backend": jax.default_backend(), **(meta or {})})
+          "jax": jax.__version__, "backend": jax.default_backend(), **prefit_logs, **(meta or {})})
   # time_s continues across resumes: it is the training time, not the wall clock.
   t_before = json.loads(lines[-1])["time_s"] if lines else 0.0
 
@@ -419,6 +427,10 @@ def config_from_args(args) -> Config:
   over: dict[str, dict[str, Any]] = {"train": train_over}
   if args.no_residual:
     over["model"] = {"residual": False}
+  if "wli" not in mods and PRESETS[args.preset].model.init_shape == "wli":
+    # Without WLI supervision (the OM-only ablation) the SDF may not start from the WLI surface:
+    # it starts from its plane, as the "wli" init's fit does.
+    over.setdefault("model", {})["init_shape"] = "plane"
   cfg = resolve(args.preset, **over)
   return cfg if args.steps is None else with_steps(cfg, args.steps)
 

@@ -86,3 +86,19 @@ def test_no_surface_note_says_when_only_some_seeds_had_none():
   note = [b for b in ablation.differences(rows, ["seed", "wing"], 600) if "OM only" in b]
   assert len(note) == 1 and "on 2 of 2 scenes (seed, wing)" in note[0]
   assert "on seed in some of the seeds only" in note[0]
+
+
+def test_figure_marks_a_kept_run_whose_directory_is_gone(tmp_path):
+  """A record kept from an earlier run (its run directory on another machine) gets a text panel;
+  the figure is still written with the other methods' images."""
+  import matplotlib
+  matplotlib.use("Agg")
+  from matplotlib import pyplot as plt
+  here, gone = _job(tmp_path, "associate", "fused"), _job(tmp_path, "associate", "om")
+  Path(here.params["run_dir"]).mkdir()
+  for name in ("preview.png", "mesh_completeness.png"):
+    plt.imsave(Path(here.params["run_dir"]) / name, np.zeros((4, 4, 3)))
+  records = [_finished(here), _finished(gone)]
+  out = tmp_path / "figures" / "associate_seed.png"
+  ablation.figure(out, "seed", records)
+  assert plt.imread(out).shape[1] > plt.imread(out).shape[0]  # two methods side by side

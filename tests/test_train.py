@@ -14,6 +14,7 @@ import analytic_scene
 from ofjax import export, fields, metrics, train
 from ofjax import scene as scene_lib
 from ofjax.config import resolve
+from ofjax.errors import UserError
 
 # A small engine for the tiny scene: the cpu preset's architecture with a smaller table and batch.
 SMALL = dict(hash={"log2_table_size": 14}, train={"n_rays": 128, "steps": 60})
@@ -141,3 +142,19 @@ def test_end_to_end_chamfer_on_the_cap(cap, tmp_path):
   pixel = scene.wli[0].pixel_size[0]
   assert ev.summary["chamfer_um"] < pixel, ev.summary
   assert (tmp_path / "metrics.jsonl").is_file() and (tmp_path / "config.json").is_file()
+
+
+def test_om_only_runs_do_not_start_from_the_wli_surface(cap, tmp_path):
+  """The CLI's OM-only run starts from the plane (the "wli" init would hand it the WLI geometry);
+  a config that asks for the "wli" init without WLI rays is refused before anything is written."""
+  parse = lambda *mods: train.config_from_args(train.build_parser().parse_args(
+      ["--data", "scene", "--out", "run", *mods]))
+  assert resolve("cpu").model.init_shape == "wli"
+  assert parse().model.init_shape == "wli"
+  assert parse("--modalities", "wli").model.init_shape == "wli"
+  assert parse("--modalities", "om").model.init_shape == "plane"
+  scene, _, _ = cap
+  cfg = resolve("cpu", **{**SMALL, "train": {"n_rays": 128, "steps": 2, "modalities": ["om"]}})
+  with pytest.raises(UserError, match="init_shape 'wli'"):
+    train.train(scene, cfg, tmp_path / "run", progress=False)
+  assert not (tmp_path / "run").exists()
