@@ -33,7 +33,7 @@ import optax
 
 from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit, render
 from ofjax import scene as scene_lib
-from ofjax.config import Config, resolve, with_steps, PRESETS
+from ofjax.config import Config, resolve, resolve_spec, with_steps, PRESETS
 from ofjax.errors import UserError, cli
 
 MODALITIES = ("wli", "om")
@@ -404,6 +404,9 @@ def build_parser() -> argparse.ArgumentParser:
                  "(default: the preset's)")
   p.add_argument("--resume", action="store_true",
                  help="continue the run in --out from its newest checkpoint")
+  p.add_argument("--set", action="append", default=[], metavar="COMPONENT.FIELD=VALUE",
+                 help="override any config field, e.g. --set model.init_shape=plane (repeatable; "
+                 "the options above win over it)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
   p.add_argument("--quiet", action="store_true", help="no progress bar")
   return p
@@ -431,7 +434,11 @@ def config_from_args(args) -> Config:
     # Without WLI supervision (the OM-only ablation) the SDF may not start from the WLI surface:
     # it starts from its plane, as the "wli" init's fit does.
     over.setdefault("model", {})["init_shape"] = "plane"
-  cfg = resolve(args.preset, **over)
+  spec = "+".join([args.preset, *args.set])
+  try:
+    cfg = resolve_spec(spec, **over) if args.set else resolve(args.preset, **over)
+  except ValueError as e:
+    raise UserError(f"--set: {e}") from None
   return cfg if args.steps is None else with_steps(cfg, args.steps)
 
 

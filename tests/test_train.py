@@ -153,6 +153,12 @@ def test_om_only_runs_do_not_start_from_the_wli_surface(cap, tmp_path):
   assert parse().model.init_shape == "wli"
   assert parse("--modalities", "wli").model.init_shape == "wli"
   assert parse("--modalities", "om").model.init_shape == "plane"
+  assert parse("--set", "model.init_shape=plane").model.init_shape == "plane"
+  set_two = parse("--set", "model.wli_fit_steps=50", "--set", "hash.log2_table_size=14")
+  assert (set_two.model.wli_fit_steps, set_two.hash.log2_table_size) == (50, 14)
+  for bad in ("model.no_such_field=1", "model.init_shape=cube", "init_shape"):
+    with pytest.raises(UserError, match="--set"):
+      parse("--set", bad)
   scene, _, _ = cap
   cfg = resolve("cpu", **{**SMALL, "train": {"n_rays": 128, "steps": 2, "modalities": ["om"]}})
   with pytest.raises(UserError, match="init_shape 'wli'"):
