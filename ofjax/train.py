@@ -302,6 +302,9 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
   from tqdm import tqdm
 
   tc = cfg.train
+  if cfg.model.init_shape == "wli" and "wli" not in tc.modalities:
+    raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does not "
+                    "train on (train.modalities); use init_shape 'plane'")
   norm = scene.normalization or scene_lib.compute_normalization(scene, tc.box_margin)
   box = observed_box(scene, norm, tc.box_margin)
   data = prepare_data(scene, norm)
@@ -313,14 +316,12 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
     state = checkpoint.restore(run_dir, params, opt_state)
     if state is not None:
       start, params, opt_state = state[0], *jax.device_put(state[1:])
-  prefit_logs = {}
-  if cfg.model.init_shape == "wli" and "wli" not in tc.modalities:
-    raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does not "
-                    "train on (train.modalities); use init_shape 'plane'")
+  prefit_logs, prefit_s = {}, 0.0
   if cfg.model.init_shape == "wli" and start == 0:
     fitted = prefit.fit(params, *prefit.oriented_cloud(scene, norm), cfg,
                         reference_scale(data, cfg), tc.seed, progress)
-    params, prefit_logs = fitted.params, {"prefit": {"seconds": fitted.seconds, **fitted.losses}}
+    params, prefit_s = fitted.params, fitted.seconds
+    prefit_logs = {"prefit": {"seconds": fitted.seconds, **fitted.losses}}
   step_fn = create_train_step(cfg, optimizer)
 
   lines: list[str] = []
@@ -336,8 +337,9 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
           "config": cfg.to_dict(), "units": scene.units,
           "normalization": dataclasses.asdict(norm), "observed_box": box,
           "jax": jax.__version__, "backend": jax.default_backend(), **prefit_logs, **(meta or {})})
-  # time_s continues across resumes: it is the training time, not the wall clock.
-  t_before = json.loads(lines[-1])["time_s"] if lines else 0.0
+  # time_s continues across resumes: it is the training time (the WLI fit's included), not the
+  # wall clock.
+  t_before = json.loads(lines[-1])["time_s"] if lines else prefit_s
 
   t0 = time.time()
   bar = tqdm(total=tc.steps, initial=start, disable=not progress, unit="it", dynamic_ncols=True,
