@@ -398,3 +398,36 @@ def test_fit_cost_is_the_tukey_mean_and_peaks_at_the_true_scale():
     assert np.cbrt(np.linalg.det(S[:3, :3])) == pytest.approx(1 + d, abs=1e-12)
     probe = align._fit_cost(p_om, S, p_wli, normals, tree, hm, cut)
     assert probe > (1 + align.SCALE_PEAK_MARGIN) * cost, (d, probe, cost)
+
+
+def _probe_costs(p_wli, normals, p_om):
+  """(cost, [cost at -SCALE_PROBE, +SCALE_PROBE]) as align_om_to_wli's scale check computes them."""
+  tree, hm, cut = cKDTree(p_wli), align.HeightMap(p_wli, 2 * PX), 1.5 * PX
+  cost = align._fit_cost(p_om, np.eye(4), p_wli, normals, tree, hm, cut)
+  probes = [align._fit_cost(p_om, align._polish(p_om, align._rescaled(np.eye(4), 1 + d, np.zeros(3)),
+                                                p_wli, normals, tree, hm, PX, free_scale=False),
+                            p_wli, normals, tree, hm, cut)
+            for d in (-align.SCALE_PROBE, align.SCALE_PROBE)]
+  return cost, probes
+
+
+def test_scale_check_refuses_a_plane_and_accepts_relief():
+  """On a plane the scale is free: the re-polished probes cost about what the found scale costs,
+  no minimum, and the check refuses; on the bumpy surface it accepts. The rule itself: both sides higher, the mean by
+  the margin (an unequal rise such as circuit's 4.4% / 11.8% passes, a one-sided slope does not)."""
+  rng = np.random.default_rng(5)
+  g = np.arange(-100.0, 100.0, PX)
+  grid = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+  xy = rng.uniform(-90, 90, (1500, 2))
+  flat = lambda q: (np.column_stack([q, np.zeros(len(q))]), np.tile([0.0, 0.0, 1.0], (len(q), 1)))
+  p_om = flat(xy)[0] + rng.normal(0, 0.3, (len(xy), 3))
+  cost, probes = _probe_costs(*flat(grid), p_om)
+  # Only the points' noise, scaled with them, moves the cost: within 10%, smaller when shrunk.
+  assert probes == pytest.approx([cost, cost], rel=0.1) and probes[0] < cost < probes[1]
+  assert not align.scale_is_determined(cost, probes)
+  p_om = bumps(xy)[0] + rng.normal(0, 0.3, (len(xy), 3))
+  cost, probes = _probe_costs(*bumps(grid), p_om)
+  assert align.scale_is_determined(cost, probes), (cost, probes)
+  assert align.scale_is_determined(0.293, [0.306, 0.328])
+  assert not align.scale_is_determined(0.293, [0.290, 0.400])  # lower on one side: no minimum
+  assert not align.scale_is_determined(0.293, [0.300, 0.301])  # a shallow valley
