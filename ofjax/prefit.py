@@ -12,10 +12,14 @@ Names (normalised box coordinates):
   delta  [B] offsets along n, normal with std `wli_fit_offset` reference units: q = p + delta n
          is a near-surface query whose signed distance is delta to first order (point-to-plane).
   r      [K, 3] uniform points of the box, drawn once; s [K] their signed distance to the cloud:
-         the distance to the nearest WLI point, signed by that point's normal. Away from the
-         surface it keeps the field free of stray zero crossings (in the air and, where no ray
-         ever looks, inside the sample); it is compared truncated at `BOX_TRUNCATION`, beyond
-         which only its sign is asked.
+         the distance to the nearest WLI point, signed by what the scans saw there (free_space):
+         positive where a scan's ray passed the point before it met the surface, negative where
+         scans met the surface before the point and none passed it, NaN (no term) where no scan
+         measured its pixel (the voids). Away from the surface it keeps the field free of stray zero crossings,
+         in the air and, where no ray ever looks, inside the sample; it is compared truncated at
+         `BOX_TRUNCATION`, beyond which only its sign is asked. (The nearest point's normal is no
+         sign there: across a void it belongs to another face, and it left closed bubbles inside
+         the sample on two of three seeds of the default scene.)
 Loss per step (B near-surface queries and B / 4 box points):
   u^2 mean (sdf(q) - delta)^2 + mean |grad sdf(q) - n|^2 + mean (clip(u sdf(r)) - clip(u s))^2
   + mean (|grad sdf(r)| - 1)^2,
@@ -46,6 +50,9 @@ NORMAL_NEIGHBOURS = 16
 BOX_POINTS = 2**18
 # The fit's progress bar shows the loss every this many steps (a host sync).
 LOG_EVERY = 50
+# A box point within this many WLI pixels of a scan's measured depth is neither in front of it nor
+# behind it for that scan.
+SIDE_MARGIN_PX = 2.0
 # Far-field distances are compared up to this many reference units (a tenth of the field of view
 # each): beyond it only the sign is asked, as the nearest-point distance is no SDF in the voids.
 BOX_TRUNCATION = 1.0
@@ -82,17 +89,39 @@ def oriented_cloud(scene: scene_lib.Scene, norm: scene_lib.Normalization
   return (np.concatenate(pts).astype(np.float32), np.concatenate(nrm).astype(np.float32))
 
 
-def box_targets(points: np.ndarray, normals: np.ndarray, seed: int, count: int = BOX_POINTS
-                ) -> tuple[np.ndarray, np.ndarray]:
+def free_space(r_um: np.ndarray, scans) -> np.ndarray:
+  """[K] sign of each point r_um [K, 3] (um) as the WLI scans saw it: +1 where some scan's ray
+  passed it before meeting the surface (free space), else -1 where some scan met the surface
+  before it, else 0 (no scan measured its pixel, or only within SIDE_MARGIN_PX of the point)."""
+  front = np.zeros(len(r_um), bool)
+  behind = np.zeros(len(r_um), bool)
+  for scan in scans:
+    rot, t = scan.c2w[:3, :3], scan.c2w[:3, 3]
+    local = (r_um - t) @ (rot / np.linalg.norm(rot, axis=0))  # camera axes; z along the view
+    (h, w), (sx, sy) = scan.shape, scan.pixel_size
+    col = np.floor(local[:, 0] / sx + w / 2).astype(np.int64)
+    row = np.floor(local[:, 1] / sy + h / 2).astype(np.int64)
+    seen = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    depth = np.full(len(r_um), np.nan)
+    depth[seen] = scan.depth[row[seen], col[seen]]
+    margin = SIDE_MARGIN_PX * max(sx, sy)
+    with np.errstate(invalid="ignore"):  # NaN depths (voids) compare False: no evidence
+      front |= local[:, 2] < depth - margin
+      behind |= local[:, 2] > depth + margin
+  return np.where(front, 1.0, np.where(behind, -1.0, 0.0))
+
+
+def box_targets(points: np.ndarray, scene: scene_lib.Scene, norm: scene_lib.Normalization,
+                seed: int, count: int = BOX_POINTS) -> tuple[np.ndarray, np.ndarray]:
   """Host side: `count` uniform points r [K, 3] of [-1, 1]^3 and their signed distance s [K] to
-  the oriented cloud (nearest point, signed by its normal), float32."""
+  the WLI points [M, 3] (normalised; the nearest one's distance, signed by free_space; NaN where
+  the scans say nothing), float32."""
   r = np.random.default_rng(seed).uniform(-1.0, 1.0, (count, 3)).astype(np.float32)
   nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(points))
   nns.knn_index()
-  j, dist2 = (a.numpy()[:, 0] for a in nns.knn_search(o3d.core.Tensor(r), 1))
-  dist = np.sqrt(dist2)
-  side = np.sign(np.sum((r - points[j]) * normals[j], -1))
-  return r, (np.where(side == 0, 1.0, side) * dist).astype(np.float32)
+  dist2 = nns.knn_search(o3d.core.Tensor(r), 1)[1].numpy()[:, 0]
+  side = free_space(norm.to_um(r.astype(np.float64)), scene.wli)
+  return r, np.where(side == 0, np.nan, side * np.sqrt(dist2)).astype(np.float32)
 
 
 def fit_losses(geo, params, cloud, key, cfg: Config, unit):
@@ -111,21 +140,23 @@ def fit_losses(geo, params, cloud, key, cfg: Config, unit):
   sdf, grad, _ = fields.geometry({**params, **geo}, jnp.concatenate([q, r[far]]), cfg)
   chex.assert_shape([sdf, grad], [(b + b // 4,), (b + b // 4, 3)])
   clip = lambda v: jnp.clip(unit * v, -BOX_TRUNCATION, BOX_TRUNCATION)
+  known = jnp.isfinite(s[far])
+  far_err = jnp.where(known, clip(sdf[b:]) - clip(jnp.where(known, s[far], 0.0)), 0.0)
   terms = {
       "distance": jnp.mean((unit * (sdf[:b] - delta)) ** 2),
       "normal": jnp.mean(jnp.sum((grad[:b] - n[idx]) ** 2, -1)),
-      "far": jnp.mean((clip(sdf[b:]) - clip(s[far])) ** 2),
+      "far": jnp.sum(far_err**2) / jnp.maximum(jnp.sum(known), 1),
       "eikonal": jnp.mean((fields.safe_norm(grad[b:]) - 1.0) ** 2),
   }
   return sum(terms.values()), {f"loss/{k}": v for k, v in terms.items()}
 
 
-def fit(params, points: np.ndarray, normals: np.ndarray, cfg: Config, unit, seed: int,
-        progress: bool = True) -> FitResult:
-  """Fits params' tables and SDF net to the oriented cloud for cfg.model.wli_fit_steps steps.
+def fit(params, scene: scene_lib.Scene, norm: scene_lib.Normalization, cfg: Config, unit,
+        seed: int, progress: bool = True) -> FitResult:
+  """Fits params' tables and SDF net to the scene's WLI for cfg.model.wli_fit_steps steps.
 
-  points, normals: [M, 3] (oriented_cloud); unit: [] reference units per normalised unit; seed
-  draws the box points and the batches.
+  The oriented cloud and box targets are made here (host); unit: [] reference units per
+  normalised unit; seed draws the box points and the batches.
   Adam at wli_fit_lr, cosine-decayed to a tenth; the colour nets and NeuS's variance are kept.
   """
   mc = cfg.model
@@ -134,7 +165,8 @@ def fit(params, points: np.ndarray, normals: np.ndarray, cfg: Config, unit, seed
   opt = optax.adam(schedule, b1=cfg.optim.b1, b2=cfg.optim.b2, eps=cfg.optim.eps)
   geo = {k: params[k] for k in ("tables", "sdf")}
   rest = {k: v for k, v in params.items() if k not in geo}
-  cloud = tuple(map(jnp.asarray, (points, normals, *box_targets(points, normals, seed))))
+  points, normals = oriented_cloud(scene, norm)
+  cloud = tuple(map(jnp.asarray, (points, normals, *box_targets(points, scene, norm, seed))))
 
   @jax.jit
   def step(geo, state, rest, cloud, unit, i):

@@ -318,8 +318,7 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
       start, params, opt_state = state[0], *jax.device_put(state[1:])
   prefit_logs, prefit_s = {}, 0.0
   if cfg.model.init_shape == "wli" and start == 0:
-    fitted = prefit.fit(params, *prefit.oriented_cloud(scene, norm), cfg,
-                        reference_scale(data, cfg), tc.seed, progress)
+    fitted = prefit.fit(params, scene, norm, cfg, reference_scale(data, cfg), tc.seed, progress)
     params, prefit_s = fitted.params, fitted.seconds
     prefit_logs = {"prefit": {"seconds": fitted.seconds, **fitted.losses}}
   step_fn = create_train_step(cfg, optimizer)
@@ -432,10 +431,6 @@ def config_from_args(args) -> Config:
   over: dict[str, dict[str, Any]] = {"train": train_over}
   if args.no_residual:
     over["model"] = {"residual": False}
-  if "wli" not in mods and PRESETS[args.preset].model.init_shape == "wli":
-    # Without WLI supervision (the OM-only ablation) the SDF may not start from the WLI surface:
-    # it starts from its plane, as the "wli" init's fit does.
-    over.setdefault("model", {})["init_shape"] = "plane"
   spec = "+".join([args.preset, *args.set])
   try:
     cfg = resolve_spec(spec, **over) if args.set else resolve(args.preset, **over)

@@ -47,19 +47,28 @@ def test_oriented_cloud_has_the_surface_normals_facing_the_objective(cap):
   assert cos.min() > 0.0  # every normal on the objective's side
 
 
-def test_box_targets_are_the_signed_nearest_point_distance():
-  """Against a float64 brute-force nearest neighbour in NumPy."""
-  rng = np.random.default_rng(0)
-  pts = rng.uniform(-0.8, 0.8, (500, 3)).astype(np.float32)
-  nrm = rng.normal(size=(500, 3))
-  nrm = (nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)).astype(np.float32)
-  r, s = prefit.box_targets(pts, nrm, seed=3, count=400)
-  chex.assert_shape([r, s], [(400, 3), (400,)])
+def test_box_targets_are_the_nearest_point_distance_signed_by_the_scans(cap):
+  """Distances against a float64 brute-force nearest neighbour; signs against the cap's analytic
+  height: above it (by 3 WLI pixels) is free space, below it is inside; NaN only where no scan
+  measured the point's pixel, which the top scan does over the whole cap."""
+  scene, norm = cap
+  p, _ = prefit.oriented_cloud(scene, norm)
+  p = p[::7]  # a few thousand points keep the brute force small
+  r, s = prefit.box_targets(p, scene, norm, seed=3, count=3000)
+  chex.assert_shape([r, s], [(3000, 3), (3000,)])
+  chex.assert_type([r, s], np.float32)
   assert np.all(np.abs(r) <= 1.0)
-  d = np.linalg.norm(r[:, None].astype(np.float64) - pts[None].astype(np.float64), axis=-1)
-  j = np.argmin(d, 1)
-  sign = np.sign(np.sum((r - pts[j]) * nrm[j], -1, dtype=np.float64))
-  np.testing.assert_allclose(s, sign * d[np.arange(400), j], rtol=1e-5, atol=1e-6)
+  d = np.sqrt(np.min(np.sum((r[:, None].astype(np.float64) - p[None]) ** 2, -1), 1))
+  known = np.isfinite(s)
+  np.testing.assert_allclose(np.abs(s[known]), d[known], rtol=1e-5, atol=1e-6)
+  r_um = norm.to_um(r.astype(np.float64))
+  above = r_um[:, 2] - analytic_scene.height(r_um[:, 0], r_um[:, 1])
+  top = scene.wli[0]  # looks straight down at the origin
+  pixel = top.pixel_size[0]
+  in_top = np.all(np.abs(r_um[:, :2]) < top.shape[1] * pixel / 2 - pixel, -1)
+  clear = in_top & (np.abs(above) > 3 * pixel)
+  assert clear.sum() > 100 and np.all(known[clear])
+  np.testing.assert_array_equal(np.sign(s[clear]), np.sign(above[clear]))
 
 
 def test_fit_loss_gradient_matches_finite_differences(cap):
@@ -70,7 +79,7 @@ def test_fit_loss_gradient_matches_finite_differences(cap):
   cfg = resolve("cpu", **SMALL)
   data = train.prepare_data(scene, norm)
   p, n = prefit.oriented_cloud(scene, norm)
-  r, s = prefit.box_targets(p, n, seed=0, count=4096)
+  r, s = prefit.box_targets(p, scene, norm, seed=0, count=4096)
   with enable_x64():
     params = fields.init_params(jax.random.PRNGKey(0), cfg, substrate=(data.up, data.level))
     params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params)
@@ -99,7 +108,8 @@ def test_fit_puts_the_zero_level_on_the_wli_points(cap):
   data = train.prepare_data(scene, norm)
   params = fields.init_params(jax.random.PRNGKey(0), cfg, substrate=(data.up, data.level))
   p, n = prefit.oriented_cloud(scene, norm)
-  result = prefit.fit(params, p, n, cfg, train.reference_scale(data, cfg), seed=0, progress=False)
+  result = prefit.fit(params, scene, norm, cfg, train.reference_scale(data, cfg), seed=0,
+                      progress=False)
   chex.assert_trees_all_equal_shapes_and_dtypes(result.params, params)
   for k in ("color", "residual", "variance"):
     chex.assert_trees_all_equal(result.params[k], params[k])

@@ -144,23 +144,22 @@ def test_end_to_end_chamfer_on_the_cap(cap, tmp_path):
   assert (tmp_path / "metrics.jsonl").is_file() and (tmp_path / "config.json").is_file()
 
 
-def test_om_only_runs_do_not_start_from_the_wli_surface(cap, tmp_path):
-  """The CLI's OM-only run starts from the plane (the "wli" init would hand it the WLI geometry);
-  a config that asks for the "wli" init without WLI rays is refused before anything is written."""
-  parse = lambda *mods: train.config_from_args(train.build_parser().parse_args(
-      ["--data", "scene", "--out", "run", *mods]))
-  assert resolve("cpu").model.init_shape == "wli"
-  assert parse().model.init_shape == "wli"
-  assert parse("--modalities", "wli").model.init_shape == "wli"
-  assert parse("--modalities", "om").model.init_shape == "plane"
-  assert parse("--set", "model.init_shape=plane").model.init_shape == "plane"
+def test_set_overrides_any_field_and_a_wli_init_needs_wli_rays(cap, tmp_path):
+  """--set reaches every config field (unknown ones refused in one line); a run that asks for the
+  "wli" init without WLI rays (it would hand an OM-only model the WLI's geometry) is refused
+  before anything is written."""
+  parse = lambda *extra: train.config_from_args(train.build_parser().parse_args(
+      ["--data", "scene", "--out", "run", *extra]))
+  assert parse().model.init_shape == "plane"
+  assert parse("--set", "model.init_shape=wli").model.init_shape == "wli"
   set_two = parse("--set", "model.wli_fit_steps=50", "--set", "hash.log2_table_size=14")
   assert (set_two.model.wli_fit_steps, set_two.hash.log2_table_size) == (50, 14)
   for bad in ("model.no_such_field=1", "model.init_shape=cube", "init_shape"):
     with pytest.raises(UserError, match="--set"):
       parse("--set", bad)
   scene, _, _ = cap
-  cfg = resolve("cpu", **{**SMALL, "train": {"n_rays": 128, "steps": 2, "modalities": ["om"]}})
+  cfg = resolve("cpu", **{**SMALL, "model": {"init_shape": "wli"},
+                          "train": {"n_rays": 128, "steps": 2, "modalities": ["om"]}})
   with pytest.raises(UserError, match="init_shape 'wli'"):
     train.train(scene, cfg, tmp_path / "run", progress=False)
   assert not (tmp_path / "run").exists()
