@@ -15,11 +15,11 @@ Names (normalised box coordinates):
          the distance to the nearest WLI point, signed by what the scans saw there (free_space):
          positive where a scan's ray passed the point before it met the surface, negative where
          scans met the surface before the point and none passed it, NaN (no term) where no scan
-         measured its pixel (the voids). Away from the surface it keeps the field free of stray zero crossings,
-         in the air and, where no ray ever looks, inside the sample; it is compared truncated at
-         `BOX_TRUNCATION`, beyond which only its sign is asked. (The nearest point's normal is no
-         sign there: across a void it belongs to another face, and it left closed bubbles inside
-         the sample on two of three seeds of the default scene.)
+         measured its pixel (the voids). Away from the surface it keeps the field free of stray
+         zero crossings, in the air and, where no ray ever looks, inside the sample; it is compared
+         truncated at `BOX_TRUNCATION`, beyond which only its sign is asked. (The nearest point's
+         normal is no sign there: across a void it belongs to another face, and it left closed
+         bubbles inside the sample on two of three seeds of the default scene.)
 Loss per step (B near-surface queries and B / 4 box points):
   u^2 mean (sdf(q) - delta)^2 + mean |grad sdf(q) - n|^2 + mean (clip(u sdf(r)) - clip(u s))^2
   + mean (|grad sdf(r)| - 1)^2,
@@ -99,6 +99,7 @@ def free_space(r_um: np.ndarray, scans) -> np.ndarray:
     rot, t = scan.c2w[:3, :3], scan.c2w[:3, 3]
     local = (r_um - t) @ (rot / np.linalg.norm(rot, axis=0))  # camera axes; z along the view
     (h, w), (sx, sy) = scan.shape, scan.pixel_size
+    # The pixel whose ray passes nearest: scene.wli_rays' pixel centres, inverted.
     col = np.floor(local[:, 0] / sx + w / 2).astype(np.int64)
     row = np.floor(local[:, 1] / sy + h / 2).astype(np.int64)
     seen = (row >= 0) & (row < h) & (col >= 0) & (col < w)
@@ -159,6 +160,7 @@ def fit(params, scene: scene_lib.Scene, norm: scene_lib.Normalization, cfg: Conf
   normalised unit; seed draws the box points and the batches.
   Adam at wli_fit_lr, cosine-decayed to a tenth; the colour nets and NeuS's variance are kept.
   """
+  t0 = time.time()
   mc = cfg.model
   key = jax.random.PRNGKey(seed)
   schedule = optax.cosine_decay_schedule(mc.wli_fit_lr, max(mc.wli_fit_steps, 1), alpha=0.1)
@@ -177,7 +179,6 @@ def fit(params, scene: scene_lib.Scene, norm: scene_lib.Normalization, cfg: Conf
 
   state = opt.init(geo)
   logs = {}
-  t0 = time.time()
   bar = tqdm(range(mc.wli_fit_steps), disable=not progress, unit="it", dynamic_ncols=True,
              desc="fit WLI")
   for i in bar:

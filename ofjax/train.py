@@ -33,7 +33,7 @@ import optax
 
 from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit, render
 from ofjax import scene as scene_lib
-from ofjax.config import Config, resolve, resolve_spec, with_steps, PRESETS
+from ofjax.config import Config, resolve_spec, with_steps, PRESETS
 from ofjax.errors import UserError, cli
 
 MODALITIES = ("wli", "om")
@@ -303,8 +303,8 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
 
   tc = cfg.train
   if cfg.model.init_shape == "wli" and "wli" not in tc.modalities:
-    raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does not "
-                    "train on (train.modalities); use init_shape 'plane'")
+    raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does "
+                    "not train on (train.modalities); use init_shape 'plane'")
   norm = scene.normalization or scene_lib.compute_normalization(scene, tc.box_margin)
   box = observed_box(scene, norm, tc.box_margin)
   data = prepare_data(scene, norm)
@@ -431,9 +431,8 @@ def config_from_args(args) -> Config:
   over: dict[str, dict[str, Any]] = {"train": train_over}
   if args.no_residual:
     over["model"] = {"residual": False}
-  spec = "+".join([args.preset, *args.set])
-  try:
-    cfg = resolve_spec(spec, **over) if args.set else resolve(args.preset, **over)
+  try:  # with no --set this is resolve(args.preset, **over)
+    cfg = resolve_spec("+".join([args.preset, *args.set]), **over)
   except ValueError as e:
     raise UserError(f"--set: {e}") from None
   return cfg if args.steps is None else with_steps(cfg, args.steps)

@@ -404,17 +404,18 @@ def _probe_costs(p_wli, normals, p_om):
   """(cost, [cost at -SCALE_PROBE, +SCALE_PROBE]) as align_om_to_wli's scale check computes them."""
   tree, hm, cut = cKDTree(p_wli), align.HeightMap(p_wli, 2 * PX), 1.5 * PX
   cost = align._fit_cost(p_om, np.eye(4), p_wli, normals, tree, hm, cut)
-  probes = [align._fit_cost(p_om, align._polish(p_om, align._rescaled(np.eye(4), 1 + d, np.zeros(3)),
-                                                p_wli, normals, tree, hm, PX, free_scale=False),
-                            p_wli, normals, tree, hm, cut)
+  rescaled = lambda d: align._rescaled(np.eye(4), 1 + d, np.zeros(3))
+  probes = [align._fit_cost(p_om, align._polish(p_om, rescaled(d), p_wli, normals, tree, hm, PX,
+                                                free_scale=False), p_wli, normals, tree, hm, cut)
             for d in (-align.SCALE_PROBE, align.SCALE_PROBE)]
   return cost, probes
 
 
 def test_scale_check_refuses_a_plane_and_accepts_relief():
   """On a plane the scale is free: the re-polished probes cost about what the found scale costs,
-  no minimum, and the check refuses; on the bumpy surface it accepts. The rule itself: both sides higher, the mean by
-  the margin (an unequal rise such as circuit's 4.4% / 11.8% passes, a one-sided slope does not)."""
+  no minimum, and the check refuses; on the bumpy surface it accepts. The rule itself: both sides
+  higher, the mean by the margin (an unequal rise such as circuit's 4.4% / 11.8% passes, a
+  one-sided slope does not)."""
   rng = np.random.default_rng(5)
   g = np.arange(-100.0, 100.0, PX)
   grid = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)

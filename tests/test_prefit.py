@@ -91,8 +91,10 @@ def test_fit_loss_gradient_matches_finite_differences(cap):
     grad = jax.grad(loss)(geo)
     leaves = jax.tree.leaves(geo)
     direction = jax.tree.unflatten(jax.tree.structure(geo), [
-        jax.random.normal(jax.random.PRNGKey(i), a.shape, jnp.float64) for i, a in enumerate(leaves)])
-    analytic = sum(jnp.vdot(g, v) for g, v in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
+        jax.random.normal(jax.random.PRNGKey(i), a.shape, jnp.float64)
+        for i, a in enumerate(leaves)])
+    analytic = sum(jnp.vdot(g, v)
+                   for g, v in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
     eps = 1e-6
     shifted = lambda e: jax.tree.map(lambda a, v: a + e * v, geo, direction)
     numeric = (loss(shifted(eps)) - loss(shifted(-eps))) / (2 * eps)

@@ -377,9 +377,9 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   if not scale_is_determined(cost_fit, probes):
     raise UserError(f"{scene_dir}: OM-to-WLI alignment is ambiguous: scaling the SfM points by "
                     f"{1 - SCALE_PROBE:g} or {1 + SCALE_PROBE:g} fits the WLI surface about as "
-                    f"well (cost {probes[0]:.3f} / {probes[1]:.3f} vs {cost_fit:.3f}), so the scale "
-                    "is not determined; scan a larger area with relief (WLI) or take photos with "
-                    "more overlap so that both clouds share distinct 3D structure")
+                    f"well (cost {probes[0]:.3f} / {probes[1]:.3f} vs {cost_fit:.3f}), so the "
+                    "scale is not determined; scan a larger area with relief (WLI) or take photos "
+                    "with more overlap so that both clouds share distinct 3D structure")
   coverage = hm_cover.coverage(moved)
   # Distances do not change when the level turn is undone, so they are taken in its frame.
   residuals = np.asarray(register.to_cloud(moved).compute_point_cloud_distance(tgt))
