@@ -164,11 +164,12 @@ PRESETS: dict[str, Config] = {
     # 0.001); like the depth loss it is measured in the reference's unit
     # (TrainConfig.reference_unit), which took the default scene from 2.18 to 1.46 um at 1,200
     # steps (experiments/README.md, all five scenes).
-    # The SDF starts as the WLI's median height plane instead of the reference's sphere: without
-    # depth (OM only) the sphere collapses into a field that is solid everywhere, which renders
-    # every OM ray's colour at its box entry and has no surface; from the plane the same data form
-    # one, and the fused model trains the same (experiments/README.md). The plane fitted to the
-    # WLI points ("wli", ofjax.prefit) is measured in experiments/README.md, not yet adopted.
+    # The SDF starts fitted to the oriented WLI points ("wli", ofjax.prefit: 300 steps from the
+    # WLI's median height plane) instead of the reference's sphere: from the sphere, without
+    # depth (OM only), the field collapses into one solid everywhere and has no surface; from the
+    # plane it forms one; from the fitted WLI shape the fused model reached 0.78x the plane's
+    # Chamfer over the five scenes at 600 steps (experiments/README.md). OM-only runs have no WLI
+    # to fit: they need `--set model.init_shape=plane` (train says so).
     # The residual colour's L2 weighs 10x the paper's: at 0.001 over this short schedule the
     # view-dependent branch kept part of the diffuse colour, which the mesh (coloured by G alone)
     # then lacks (circuit's albedo 12.7 dB against 21.5 without the branch). In the 600-step
@@ -176,7 +177,7 @@ PRESETS: dict[str, Config] = {
     # 0.92-1.04x the Chamfer (experiments/README.md).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
-        model=ModelConfig(init_shape="plane"),
+        model=ModelConfig(init_shape="wli"),
         loss=LossConfig(lambda_residual=0.01),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
                             cos_anneal_steps=1000, wli_guided_samples=8),

@@ -150,8 +150,8 @@ def test_set_overrides_any_field_and_a_wli_init_needs_wli_rays(cap, tmp_path):
   before anything is written."""
   parse = lambda *extra: train.config_from_args(train.build_parser().parse_args(
       ["--data", "scene", "--out", "run", *extra]))
-  assert parse().model.init_shape == "plane"
-  assert parse("--set", "model.init_shape=wli").model.init_shape == "wli"
+  assert parse().model.init_shape == "wli"
+  assert parse("--set", "model.init_shape=plane").model.init_shape == "plane"
   set_two = parse("--set", "model.wli_fit_steps=50", "--set", "hash.log2_table_size=14")
   assert (set_two.model.wli_fit_steps, set_two.hash.log2_table_size) == (50, 14)
   for bad in ("model.no_such_field=1", "model.init_shape=cube", "init_shape"):
