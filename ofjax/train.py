@@ -304,7 +304,8 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
   tc = cfg.train
   if cfg.model.init_shape == "wli" and "wli" not in tc.modalities:
     raise UserError("model.init_shape 'wli' fits the SDF to the WLI points, which this run does "
-                    "not train on (train.modalities); add --set model.init_shape=plane")
+                    "not train on (train.modalities); set it to 'plane' "
+                    "(--set model.init_shape=plane)")
   norm = scene.normalization or scene_lib.compute_normalization(scene, tc.box_margin)
   box = observed_box(scene, norm, tc.box_margin)
   data = prepare_data(scene, norm)
