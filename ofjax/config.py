@@ -81,6 +81,9 @@ class LossConfig:
   lambda_color: float = 1.0  # OM colour MSE
   lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
   lambda_wli: float = 1.0  # WLI depth MSE in reference units (TrainConfig.reference_unit; voids masked)
+  # SDF^2 (reference units) at the measured WLI points, o + D d: the depth loss constrains only the
+  # rendered expectation of a ray's weights, this term the surface itself. Not in the paper: 0.
+  lambda_wli_surface: float = 0.0
   lambda_eikonal: float = 0.1  # (|grad sdf| - 1)^2 on all samples
   lambda_sparsity: float = 0.01  # exp(-scale * |sdf|) of the reference, on uniform samples
   sparsity_scale: float = 1.0  # sharpness of the sparsity term, per reference unit of SDF
@@ -104,6 +107,7 @@ class TrainConfig:
   steps: int = 20000  # optimisation steps
   n_rays: int = 256  # rays per batch (WLI and OM mixed, equal pixel probability)
   modalities: tuple[str, ...] = ("wli", "om")  # which data supervise: the paper's ablations
+  wli_share: float = 0.5  # fraction of the rays that are WLI rays when both modalities supervise
   seed: int = 0  # seeds parameter init and ray sampling (sampling is keyed by step)
   log_every: int = 100  # host sync + metrics.jsonl line every k steps
   checkpoint_every: int = 5000  # checkpoint every k steps
@@ -117,6 +121,10 @@ class TrainConfig:
   # in the normalised box instead (earlier ofjax: ~7x coarser on the synthetic scenes, so the
   # depth loss weighed ~45x less against the colour loss than in the reference).
   reference_unit: float = 0.1
+
+  def __post_init__(self):
+    if not 0.0 < self.wli_share < 1.0:
+      raise ValueError(f"train.wli_share {self.wli_share}: use a fraction strictly between 0 and 1")
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:

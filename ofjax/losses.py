@@ -33,6 +33,12 @@ def wli(depth, target, mask):
   return masked_mean((depth - target) ** 2, mask)
 
 
+def wli_surface(sdf, mask):
+  """L_surf = 1/m sum f(o + D d)^2 over WLI rays with a measured depth: the zero level set passes
+  through every measured point (not in the paper; ofjax's config documents the weight). [R]."""
+  return masked_mean(sdf**2, mask)
+
+
 def eikonal(grad, mask):
   """L_reg = 1/(mn) sum (||n|| - 1)^2 over all samples of the masked rays (paper Eq. 6).
 

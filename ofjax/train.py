@@ -105,14 +105,15 @@ def prepare_data(scene: scene_lib.Scene, norm: scene_lib.Normalization) -> Train
 
 
 def ray_split(cfg: Config) -> tuple[int, int]:
-  """(n_wli, n_om) rays per batch: equal shares when both modalities supervise."""
+  """(n_wli, n_om) rays per batch: cfg.train.wli_share of them WLI when both modalities supervise."""
   n = cfg.train.n_rays
   mods = set(cfg.train.modalities)
   if mods == {"wli"}:
     return n, 0
   if mods == {"om"}:
     return 0, n
-  return n // 2, n - n // 2
+  n_wli = int(round(n * cfg.train.wli_share))
+  return n_wli, n - n_wli
 
 
 def _pick(key, n: int, hw):
@@ -196,12 +197,13 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
   in it, as in the reference code. The batch's WLI rays (its first ray_split(cfg)[0]) are not
   coloured: only OM rays enter the colour losses.
   """
+  geometry_fn, color_fn, sdf_fn = field_fns(params, cfg)
+  n_wli = ray_split(cfg)[0]
   # sigmoid(s_ref * sdf_ref) with sdf_ref = unit * sdf: s per normalised unit is unit * s_ref.
-  out = render.render_rays(*field_fns(params, cfg), batch["o"], batch["d"], batch["near"],
+  out = render.render_rays(geometry_fn, color_fn, sdf_fn, batch["o"], batch["d"], batch["near"],
                            batch["far"], key, unit * fields.inv_s(params),
                            render.cos_anneal_ratio(step, cfg.render), cfg.render,
-                           guide=batch["depth"], has_guide=batch["wli_ok"],
-                           n_uncolored=ray_split(cfg)[0])
+                           guide=batch["depth"], has_guide=batch["wli_ok"], n_uncolored=n_wli)
   lc = cfg.loss
   terms = {
       "color": losses.color(out["color"], batch["rgb"], batch["om_ok"]),
@@ -210,6 +212,10 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
       "eikonal": losses.eikonal(out["grad"], batch["hit"]),
       "sparsity": losses.sparsity(unit * out["sdf"], batch["hit"], lc.sparsity_scale),
   }
+  if lc.lambda_wli_surface and n_wli:  # static: a run without the term compiles without it
+    points = batch["o"][:n_wli] + batch["d"][:n_wli] * batch["depth"][:n_wli, None]
+    terms["wli_surface"] = losses.wli_surface(unit * geometry_fn(points)[0],
+                                              batch["wli_ok"][:n_wli])
   total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
   logs = {f"loss/{k}": v for k, v in terms.items()}
   logs["loss/total"] = total

@@ -50,11 +50,18 @@ def test_batch_rays_reproduce_the_wli_surface(cap):
   assert float(batch["rgb"].max()) <= 1.0
 
 
-@pytest.mark.parametrize("modalities,expect", [(("wli", "om"), (64, 64)), (("wli",), (128, 0)),
-                                               (("om",), (0, 128))])
-def test_ray_split_follows_the_modalities(modalities, expect):
-  cfg = resolve("cpu", train={"n_rays": 128, "modalities": modalities})
+@pytest.mark.parametrize("modalities,share,expect", [
+    (("wli", "om"), 0.5, (64, 64)), (("wli", "om"), 0.75, (96, 32)), (("wli",), 0.75, (128, 0)),
+    (("om",), 0.5, (0, 128))])
+def test_ray_split_follows_the_modalities(modalities, share, expect):
+  cfg = resolve("cpu", train={"n_rays": 128, "modalities": modalities, "wli_share": share})
   assert train.ray_split(cfg) == expect
+
+
+@pytest.mark.parametrize("share", [0.0, 1.0, 1.5])
+def test_wli_share_outside_the_open_interval_is_refused(share):
+  with pytest.raises(ValueError, match="wli_share"):
+    resolve("cpu", train={"wli_share": share})
 
 
 def test_lr_schedule_warms_up_then_decays_to_a_tenth():
@@ -96,6 +103,30 @@ def test_losses_are_measured_in_the_reference_unit(cap):
   for k in ("loss/color", "loss/residual", "loss/eikonal", "loss/sparsity"):
     np.testing.assert_allclose(float(scaled[k]), float(plain[k]), rtol=1e-4, err_msg=k)
   assert float(scaled["loss/wli"]) > 0
+
+
+def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
+  """loss/wli_surface against a float64 NumPy mean over the batch's measured WLI points (in the
+  reference unit), and absent when its weight is 0 (the step then computes what it did before)."""
+  scene, _, norm = cap
+  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **SMALL)
+  data = train.prepare_data(scene, norm)
+  batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
+  params = fields.init_params(jax.random.PRNGKey(0), cfg)
+  u = 6.5
+  total, logs = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg, unit=u)
+  n_wli = train.ray_split(cfg)[0]
+  b = {k: np.asarray(v, np.float64) for k, v in batch.items()}
+  points = b["o"][:n_wli] + b["d"][:n_wli] * b["depth"][:n_wli, None]
+  ok = b["wli_ok"][:n_wli].astype(bool)
+  assert 0 < ok.sum() < n_wli  # the synthetic scans have voids: the mask matters
+  sdf = np.asarray(fields.sdf_value(params, jnp.asarray(points[ok], jnp.float32), cfg), np.float64)
+  np.testing.assert_allclose(float(logs["loss/wli_surface"]), np.mean((u * sdf) ** 2), rtol=1e-4)
+  _, without = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300,
+                                    resolve("cpu", **SMALL), unit=u)
+  assert "loss/wli_surface" not in without
+  np.testing.assert_allclose(float(total), float(without["loss/total"])
+                             + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
 
 
 def test_step_shapes_and_loss_decrease(cap):
