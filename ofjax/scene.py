@@ -13,7 +13,8 @@ Names used throughout ofjax:
 
 On disk (format "ofjax-scene", version 1), a scene directory holds
   scene.json            what is in the bundle: units, source, per-scan pixel size and acquisition
-                        prior, per-photo intrinsics (optional), normalisation (optional)
+                        prior, per-photo intrinsics and stage prior (both optional),
+                        normalisation (optional)
   wli/<name>.npz        `depth`: [H, W] float32 um along the axis, NaN = void
   om/<name>.png         RGB photo, 8 or 16 bit
   poses.json            (optional) camera-to-world of every camera; see `poses_to_json`
@@ -65,6 +66,9 @@ class OMImage:
   image: np.ndarray  # [H, W, 3] float32 RGB in [0, 1]
   K: np.ndarray | None = None  # [3, 3] intrinsics in pixels, None until known (EXIF or SfM)
   c2w: np.ndarray | None = None  # [4, 4] float64 camera-to-world in um, None until associated
+  # The stage's acquisition prior, as WLIScan.prior ({"tilt_deg", "azimuth_deg"} in the WLI
+  # scans' sample frame); ofjax.associate uses it only to choose between turns that fit equally.
+  prior: dict[str, float] | None = None
 
   @property
   def shape(self) -> tuple[int, int]:
@@ -289,7 +293,7 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
     f = f"om/{o.name}.png"
     save_png(directory / f, o.image)
     om_meta.append({"name": o.name, "file": f, "shape": list(o.shape),
-                    "intrinsics": None if o.K is None else intrinsics_to_json(o)})
+                    "intrinsics": None if o.K is None else intrinsics_to_json(o), "prior": o.prior})
   if write_poses:
     fileio.write_json(directory / "poses.json", poses_to_json(scene))
   norm = scene.normalization
@@ -298,6 +302,14 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
           "normalization": None if norm is None else dataclasses.asdict(norm)}
   fileio.write_json(directory / "scene.json", meta)
   return directory
+
+
+def _prior(entry: dict, kind: str) -> dict | None:
+  """The optional "prior" object of a scene.json scan or photo entry."""
+  prior = entry.get("prior")
+  if prior is not None and not isinstance(prior, dict):
+    raise ValueError(f"{kind} {entry['name']!r}: prior is {prior!r}, not an object")
+  return prior
 
 
 def read_png(path: Path) -> np.ndarray:
@@ -338,18 +350,16 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
       if not np.isfinite(depth).any():
         raise UserError(f"{f}: every pixel is a void; replace the file or drop the scan from "
                         "scene.json")
-      prior = m.get("prior")
-      if prior is not None and not isinstance(prior, dict):
-        raise ValueError(f"scan {m['name']!r}: prior is {prior!r}, not an object")
       wli.append(WLIScan(m["name"], depth, numbers(m["pixel_size"], 2, "pixel_size", True),
-                         prior=prior))
+                         prior=_prior(m, "scan")))
     om = []
     for m in meta["om"]:
       f = directory / m["file"]
       if not f.is_file():
         raise UserError(f"{f}: OM photo listed in scene.json is missing; restore it")
       intr = m.get("intrinsics")
-      om.append(OMImage(m["name"], read_png(f), None if intr is None else K_from_json(intr)))
+      om.append(OMImage(m["name"], read_png(f), None if intr is None else K_from_json(intr),
+                        prior=_prior(m, "photo")))
     norm = meta.get("normalization")
     scene = Scene(wli, om, name=meta.get("name", directory.name), units=meta.get("units", "um"),
                   source=meta.get("source", {}),

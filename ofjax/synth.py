@@ -252,7 +252,8 @@ def make_rig(sample: Sample, res: Resolution) -> tuple[list[scn.WLIScan], list[s
   om_views = [(0.0, 0.0)] + [(e, a) for e in OM_ELEVATIONS_DEG
                              for a in np.arange(0.0, 360.0, OM_AZIMUTH_STEP_DEG)]
   om = [scn.OMImage(f"{k:04d}", np.zeros((h, w, 3), np.float32), K.copy(),
-                    c2w=pose(view_rotation(e, a), target, distance))
+                    c2w=pose(view_rotation(e, a), target, distance),
+                    prior={"tilt_deg": e, "azimuth_deg": float(a)})
         for k, (e, a) in enumerate(om_views)]
   # The substrate must reach beyond every pixel's ray hit on the plane z = 0.
   reach = 0.0

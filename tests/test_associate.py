@@ -94,15 +94,16 @@ def wli_scans(mesh_gt: trimesh.Trimesh, prior: bool = True) -> list[scene_lib.WL
 
 
 def om_images(mesh_gt: trimesh.Trimesh, views=tuple(OM_VIEWS)) -> list[scene_lib.OMImage]:
-  """The OM photos of `mesh_gt` from `views` (tilt, azimuth): Lambertian shading of a 3-D
-  value-noise albedo."""
+  """The OM photos of `mesh_gt` from `views` (tilt, azimuth; also their stage priors):
+  Lambertian shading of a 3-D value-noise albedo."""
   K = np.array([[OM_FOCAL, 0, OM_SHAPE[1] / 2], [0, OM_FOCAL, OM_SHAPE[0] / 2], [0, 0, 1]])
   light = GAUGE[:3, :3] @ (np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0]))
   inv = np.linalg.inv(GAUGE)
   om = []
   for k, (tilt, az) in enumerate(views):
     img = scene_lib.OMImage(f"{k:04d}", np.zeros(OM_SHAPE + (3,), np.float32), K,
-                            GAUGE @ look(tilt, az, OM_DISTANCE))
+                            GAUGE @ look(tilt, az, OM_DISTANCE),
+                            prior={"tilt_deg": tilt, "azimuth_deg": az})
     t, p, n = raycast(mesh_gt, *scene_lib.om_rays(img))
     rgb = albedo(p @ inv[:3, :3].T + inv[:3, 3]) * (0.35 + 0.65 * np.abs(n @ light))[..., None]
     img.image = np.where(np.isfinite(t)[..., None], rgb, 0.05).astype(np.float32)
@@ -244,6 +245,76 @@ def test_scaled_alignment_recovers_a_known_similarity():
   assert np.median(al.residuals_um) < PX
 
 
+def test_stage_turn_recovers_the_rotation_from_noisy_priors():
+  """R @ R_sfm_i ~ R_stage_i: the stage priors' mean rotation lands on R (1 deg noise each)."""
+  rng = np.random.default_rng(7)
+  truth = Rotation.random(random_state=rng)
+  sfm_rots = list(Rotation.random(20, random_state=rng).as_matrix())
+  noise = Rotation.from_rotvec(rng.normal(0, np.radians(1.0), (20, 3))).as_matrix()
+  stage = [n @ truth.as_matrix() @ r for n, r in zip(noise, sfm_rots)]
+  got = align.stage_turn(sfm_rots, stage)
+  np.testing.assert_allclose(got @ got.T, np.eye(3), atol=1e-12)
+  assert np.linalg.det(got) == pytest.approx(1.0)
+  assert rot_deg(got.T @ truth.as_matrix()) < 0.5
+
+
+def _similarity(scale: float, rot: np.ndarray) -> np.ndarray:
+  m = np.eye(4)
+  m[:3, :3] = scale * rot
+  return m
+
+
+def test_choose_turn_lets_priors_pick_the_turn_and_data_the_fit():
+  turn = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+  a, b = _similarity(2.0, np.eye(3)), _similarity(2.0, turn)
+  near = [(1.00, a, "cameras"), (1.0 + align.TURN_WARN_MARGIN / 2, b, "cameras")]
+  assert align._choose_turn(near, turn) == 1
+  assert align._choose_turn(near, np.eye(3)) == 0
+  clear = [(1.00, a, "cameras"), (1.0 + 2 * align.TURN_WARN_MARGIN, b, "cameras")]
+  assert align._choose_turn(clear, turn) is None  # a clear winner stands against the priors
+  same_turn = [(1.00, a, "cameras"), (1.01, _similarity(2.1, np.eye(3)), "fpfh")]
+  assert align._choose_turn(same_turn, turn) is None
+  # Within the turn the priors point at, the cheapest wins, not the one nearest the priors.
+  nudged = Rotation.from_euler("z", 181, degrees=True).as_matrix()
+  three = [(1.00, a, "cameras"), (1.02, b, "cameras"), (1.03, _similarity(2.0, nudged), "fpfh")]
+  assert align._choose_turn(three, nudged) == 1
+
+
+def symmetric_board(xy: np.ndarray) -> np.ndarray:
+  """[K, 3] a board with boxes placed in pairs (x, y) / (-x, -y): a half turn maps it onto
+  itself, no other turn does."""
+  z = np.zeros(len(xy))
+  for cx, cy, w, h, top in ((-60, 40, 50, 30, 30), (70, 60, 40, 60, 20), (0, 0, 30, 30, 10)):
+    for sgn in ((1,) if (cx, cy) == (0, 0) else (1, -1)):
+      z[(np.abs(xy[:, 0] - sgn * cx) < w / 2) & (np.abs(xy[:, 1] - sgn * cy) < h / 2)] = top
+  return np.column_stack([xy, z])
+
+
+def test_stage_priors_choose_the_turn_of_a_symmetric_sample():
+  """A sample that a half turn maps onto itself: the height cost cannot tell the two turns apart;
+  the stage priors' rotation picks the one they point at, whichever it is."""
+  rng = np.random.default_rng(11)
+  g = np.arange(-125.0, 125.0, PX)
+  p_wli = symmetric_board(np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2))
+  pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_wli))
+  pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * PX, max_nn=30))
+  pcd.orient_normals_to_align_with_direction((0.0, 0.0, 1.0))
+  s_true = 20.0
+  rot = Rotation.random(random_state=rng).as_matrix()
+  pick = symmetric_board(rng.uniform(-125, 125, (3000, 2)))
+  p_om = (pick @ rot) / s_true + rng.normal(0, 0.2 / s_true, (3000, 3))  # x_um = s rot x_sfm
+  forward = np.array([look(tilt, az, 1)[:3, 2] for tilt, az in OM_VIEWS]) @ rot
+  half_turn = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+  for hint in (rot, half_turn @ rot):
+    al = align.align_om_to_wli(p_om, p_wli, np.asarray(pcd.normals), PX, forward, turn_hint=hint)
+    assert al.turn_source == "priors"
+    assert abs(al.turn_runner_up_deg - 180) < 5 and abs(al.turn_margin) < align.TURN_WARN_MARGIN
+    # the turn the priors point at (alignment accuracy itself: test_scaled_alignment_...)
+    assert rot_deg((al.S[:3, :3] / al.scale).T @ hint) <= 1.0
+    assert al.prior_deg == pytest.approx(rot_deg((al.S[:3, :3] / al.scale).T @ hint), abs=1e-6)
+    assert al.scale == pytest.approx(s_true, rel=0.005)
+
+
 # ------------------------------------------------------------------------------- end to end
 
 
@@ -262,6 +333,8 @@ def test_cli_associates_the_scene_within_targets(blocks_dir):
   assert s["om"]["scale_error"] <= 0.005
   rep = json.loads((d / "association" / "report.json").read_text())
   assert rep["om"]["registered"] == 37 and len(rep["wli"]["pairs"]) == 10
+  # The blocks are not symmetric: the data choose the turn, and the stage priors agree with it.
+  assert rep["align"]["turn_source"] == "data" and rep["align"]["prior_deg"] < 1.0
   assert (d / "association" / "report.png").stat().st_size > 0
 
 

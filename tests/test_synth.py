@@ -12,6 +12,7 @@ import trimesh
 
 from ofjax import scene as scn
 from ofjax import synth
+from ofjax.associate.wli import prior_rotation
 from ofjax.synth_scenes import SCENES, Material
 
 ON_MESH_TOL = 1e-4  # fraction of the scene size: the issue's bound for back-projected WLI depths
@@ -146,6 +147,9 @@ def test_native_layout_round_trips(tmp_path, seed_tiny):
   for a, b in zip(back.om, scene.om):
     np.testing.assert_allclose(a.image, b.image, atol=0.5 / 255 + 1e-6)
     np.testing.assert_array_equal(a.K, b.K)
+    assert a.prior == b.prior
+    # The stage prior is the photo's true orientation in the WLI priors' convention.
+    np.testing.assert_allclose(prior_rotation(a.prior), a.c2w[:3, :3], atol=1e-9)
   mesh = trimesh.load(tmp_path / "ground_truth" / "mesh.ply", process=False)
   np.testing.assert_allclose(mesh.vertices, gt.mesh.vertices, atol=1e-3)
   pc = o3d.io.read_point_cloud(str(tmp_path / "ground_truth" / "surface_points.ply"))

@@ -48,6 +48,11 @@ def parser() -> argparse.ArgumentParser:
   return p
 
 
+# Stage priors more than this far from the alignment are reported (the priors' own error is a
+# few degrees: a stage's azimuth scale, a sample placed by hand).
+PRIOR_DISAGREE_DEG = 20.0
+
+
 @cli
 def main(argv: list[str] | None = None) -> int:
   args = parser().parse_args(argv)
@@ -62,11 +67,22 @@ def main(argv: list[str] | None = None) -> int:
   print(f"ofjax: wrote {args.scene_dir / 'poses.json'}: {len(a.scene.wli)} WLI scans, "
         f"{len(a.sfm.c2w)}/{len(scene.om)} OM photos, OM scale {a.align.scale:.5g} um/unit, "
         f"{a.seconds['total']:.1f} s")
-  if a.align.turn_margin < align.TURN_WARN_MARGIN:
+  al = a.align
+  if al.turn_source == "priors":
+    print(f"ofjax: the OM photos fit the WLI scans about as well turned by "
+          f"{al.turn_runner_up_deg:.0f} deg (fit costs {100 * abs(al.turn_margin):.1f}% apart); "
+          f"the photos' stage priors chose the turn ({al.prior_deg:.1f} deg from them)")
+  elif al.turn_margin < align.TURN_WARN_MARGIN:
     print(f"ofjax: warning: the OM photos fit the WLI scans almost as well turned by "
-          f"{a.align.turn_runner_up_deg:.0f} deg (height cost {a.align.height_cost:.3f}, "
-          f"{100 * a.align.turn_margin:.1f}% apart); the sample looks symmetric to the data, so "
-          "check the colours of the trained mesh", file=sys.stderr)
+          f"{al.turn_runner_up_deg:.0f} deg (height cost {al.height_cost:.3f}, "
+          f"{100 * al.turn_margin:.1f}% apart); the sample looks symmetric to the data: give the "
+          "photos' stage tilt/azimuth as \"prior\" in scene.json to decide, and check the colours "
+          "of the trained mesh", file=sys.stderr)
+  if al.prior_deg > PRIOR_DISAGREE_DEG:
+    print(f"ofjax: warning: the alignment turns the photos {al.prior_deg:.0f} deg from their "
+          "stage priors; the data chose it clearly, so the priors were kept out (was the sample "
+          "mounted turned on the two instruments, or do the stage conventions differ?)",
+          file=sys.stderr)
   if args.report:
     js, png = report.write_report(a, args.scene_dir / "association", args.min_overlap)
     print(f"ofjax: wrote {js} and {png}")

@@ -22,7 +22,12 @@ plus FPFH + RANSAC global registration on scale-normalised clouds as one more tu
 candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coarse height map;
 the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
 height map); the best is polished by robust point-to-plane least squares with scaling (`_polish`),
-which sets the final scale, tilt and offset more finely than the height cost's cells. The result
+which sets the final scale, tilt and offset more finely than the height cost's cells. A sample
+that is symmetric to the data (a MEMS die turned by 180 degrees) leaves finalists whose height
+costs lie within TURN_WARN_MARGIN of the best; when the photos carry stage priors (tilt and
+azimuth, as the WLI scans'), `stage_turn` estimates the similarity's rotation from them and the
+near-equal finalist closest to it is taken. The priors decide nothing else: a clear winner of
+the height cost stands even where the priors disagree (the CLI warns). The result
 is rejected (UserError) when too few SfM points meet the WLI surface, or when the polish's
 objective has no clear minimum at the found scale (scale_is_determined: the scale is then not
 determined by the data, and wrong poses must not be written).
@@ -70,6 +75,8 @@ SCALE_PEAK_MARGIN = 0.05  # ... where the polish's objective must be higher, by 
 # on average over the two sides (scale_is_determined)
 TURN_WARN_MARGIN = 0.1  # a turned solution within this relative cost of the best is warned about
 COST_FLOOR = 1e-12  # keeps the relative turn margin finite when the best cost is 0 (exact data)
+PRIOR_CONTENDERS = 3.0  # with stage priors, finalists within this factor of the best cost are
+# polished and compared (_choose_turn)
 
 
 @dataclasses.dataclass
@@ -84,7 +91,10 @@ class Alignment:
   height_cost: float  # the fine height cost of S (module docstring), 0 = every point on H
   coverage: float  # share of the WLI footprint with an aligned SfM point nearby
   turn_margin: float  # relative height-cost gap to the best solution turned > DISTINCT_DEG away
+  # (negative when the stage priors chose a finalist that costs slightly more than the best)
   turn_runner_up_deg: float  # that solution's turn from the winner (NaN if there is none)
+  turn_source: str = "data"  # "priors" when the photos' stage priors chose among near-equal turns
+  prior_deg: float = float("nan")  # rotation angle from the priors' estimate (NaN without priors)
 
 
 class HeightMap:
@@ -289,15 +299,46 @@ def _scale_search(p_om: np.ndarray, S: np.ndarray, tgt, hm: HeightMap, gates, ga
   return min(tried, key=lambda c: c[0])
 
 
+def stage_turn(sfm_rotations: list[np.ndarray], stage_rotations: list[np.ndarray]) -> np.ndarray:
+  """[3, 3] the rotation R of S that best maps the photos' SfM camera rotations onto their stage
+  priors' (R @ R_sfm_i ~ R_stage_i): the chordal L2 mean of R_stage_i @ R_sfm_i^T, projected
+  onto SO(3) by SVD. sfm_rotations, stage_rotations: [3, 3] each, in the same order."""
+  m = sum(r_stage @ r_sfm.T for r_sfm, r_stage in zip(sfm_rotations, stage_rotations))
+  u, _, vt = np.linalg.svd(m)
+  return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def _rotation(S: np.ndarray) -> np.ndarray:
+  return S[:3, :3] / _scale_of(S)
+
+
+def _choose_turn(contenders: list, hint: np.ndarray) -> int | None:
+  """The stage priors' choice among `contenders` [(cost, S, seed)], sorted by cost: None when
+  those within TURN_WARN_MARGIN of the best share its turn (the data decide); otherwise the
+  priors choose the turn, that of the near-equal contender closest to the rotation `hint`
+  [3, 3], and the data the contender within it: the index of that turn's cheapest."""
+  rot = lambda k: _rotation(contenders[k][1])
+  best = contenders[0][0]
+  ties = [k for k in range(len(contenders))
+          if (contenders[k][0] - best) / max(best, COST_FLOOR) < TURN_WARN_MARGIN]
+  if all(_angle_deg(rot(0), rot(k)) <= DISTINCT_DEG for k in ties):
+    return None
+  pick = min(ties, key=lambda k: _angle_deg(rot(k), hint))
+  return next(k for k in range(len(contenders)) if _angle_deg(rot(k), rot(pick)) <= DISTINCT_DEG)
+
+
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
                     wli_voxel_um: float, om_forward: np.ndarray, min_fitness: float = 0.3,
-                    scene_dir: str = "SCENE_DIR", wli_up=(0.0, 0.0, 1.0)) -> Alignment:
+                    scene_dir: str = "SCENE_DIR", wli_up=(0.0, 0.0, 1.0),
+                    turn_hint: np.ndarray | None = None) -> Alignment:
   """Similarity alignment of P_om onto P_wli (module docstring).
 
   p_om: [N, 3] SfM frame; p_wli: [M, 3] um; wli_normals: [M, 3] unit normals of P_wli;
   om_forward: [K, 3] the OM cameras' viewing directions in the SfM frame; wli_voxel_um: spacing of
-  P_wli; wli_up: [3] the sample's up direction in P_wli's frame. A final fitness below
-  `min_fitness` (share of SfM points within POLISH_GATES_VOXELS[-1] of P_wli) is a UserError.
+  P_wli; wli_up: [3] the sample's up direction in P_wli's frame; turn_hint: [3, 3] the stage
+  priors' estimate of S's rotation in P_wli's frame (`stage_turn`), or None. A final fitness
+  below `min_fitness` (share of SfM points within POLISH_GATES_VOXELS[-1] of P_wli) is a
+  UserError.
   """
   if len(p_om) < 10:
     raise UserError(f"{scene_dir}/om: structure-from-motion left only {len(p_om)} reliable points; "
@@ -347,17 +388,35 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     raise UserError(f"{scene_dir}: OM-to-WLI alignment failed: no placement of the SfM points "
                     "covers the WLI scans; check that the photos and scans show the same sample")
   finals.sort(key=lambda c: c[0])
+  tree = cKDTree(p_wli)
+  final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
+  fit_args = (p_wli, wli_normals, tree, hm_fine)
+  polish = lambda S: _polish(p_om, S, *fit_args, wli_voxel_um)
   cost, S, seed = finals[0]
+  ranked, chosen, turn_source = finals, 0, "data"
+  hint = None if turn_hint is None else level[:3, :3] @ turn_hint
+  if hint is not None:
+    # The height cost bins heights in cells that a half turn does not map onto cells, so it
+    # tells the turns of a symmetric sample apart by its walls' binning (0.019 vs 0.028 on the
+    # test's board that a half turn maps onto itself, polished). The priors therefore compare
+    # the contenders polished, by the polish's own, unbinned objective.
+    contenders = sorted(((_fit_cost(p_om, P, *fit_args, final_gate), P, name)
+                         for P, name in ((polish(S), name) for c, S, name in finals
+                                         if c <= PRIOR_CONTENDERS * finals[0][0])),
+                        key=lambda c: c[0])
+    k = _choose_turn(contenders, hint)
+    if k is not None:
+      ranked, chosen, turn_source = contenders, k, "priors"
+      if _angle_deg(_rotation(contenders[k][1]), _rotation(S)) > DISTINCT_DEG:
+        cost, S, seed = contenders[k]  # the priors turn the data's choice
   # A (nearly) symmetric sample fits a turned copy almost as well; the margin says how clearly
   # the data chose the turn (the CLI warns when it is small).
-  turned = [(c, _angle_deg(S[:3, :3] / _scale_of(S), T[:3, :3] / _scale_of(T)))
-            for c, T, _ in finals[1:]]
+  turned = [(c - ranked[chosen][0], _angle_deg(_rotation(ranked[chosen][1]), _rotation(T)))
+            for k, (c, T, _) in enumerate(ranked) if k != chosen]
   turned = [t for t in turned if t[1] > DISTINCT_DEG]
-  margin, runner_up_deg = ((turned[0][0] - cost) / max(cost, COST_FLOOR), turned[0][1]) if turned \
-      else (float("inf"), float("nan"))
-  final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
-  tree = cKDTree(p_wli)
-  S = _polish(p_om, S, p_wli, wli_normals, tree, hm_fine, wli_voxel_um)
+  margin, runner_up_deg = (turned[0][0] / max(ranked[chosen][0], COST_FLOOR), turned[0][1]) \
+      if turned else (float("inf"), float("nan"))
+  S = polish(S)
   moved = _apply(S, p_om)
   cost = hm_fine.cost(moved, fine_gate)
   src = register.to_cloud(p_om)
@@ -369,7 +428,6 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   # A determined scale is a clear minimum of the polish's objective: scales SCALE_PROBE either
   # side, each with the other six parameters re-polished, must cost clearly more (a flat part
   # leaves the scale free).
-  fit_args = (p_wli, wli_normals, tree, hm_fine)
   cost_fit = _fit_cost(p_om, S, *fit_args, final_gate)
   probes = [_fit_cost(p_om, _polish(p_om, _rescaled(S, 1 + d, c_wli), *fit_args, wli_voxel_um,
                                     free_scale=False), *fit_args, final_gate)
@@ -381,11 +439,12 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
                     "scale is not determined; scan a larger area with relief (WLI) or take photos "
                     "with more overlap so that both clouds share distinct 3D structure")
   coverage = hm_cover.coverage(moved)
+  prior_deg = float("nan") if hint is None else _angle_deg(_rotation(S), hint)
   # Distances do not change when the level turn is undone, so they are taken in its frame.
   residuals = np.asarray(register.to_cloud(moved).compute_point_cloud_distance(tgt))
   S = np.linalg.inv(level) @ S
   return Alignment(S, _scale_of(S), float(res.fitness), float(res.inlier_rmse), residuals, seed,
-                   s0, cost, coverage, float(margin), float(runner_up_deg))
+                   s0, cost, coverage, float(margin), float(runner_up_deg), turn_source, prior_deg)
 
 
 def om_c2w_um(c2w_sfm: np.ndarray, S: np.ndarray) -> np.ndarray:

@@ -32,6 +32,17 @@ class Association:
   seconds: dict[str, float]  # wall time of "wli", "sfm", "align" (step 2 with re-posing), "total"
 
 
+def stage_hint(photos: list[scene_lib.OMImage], c2w_sfm: dict[str, np.ndarray]):
+  """[3, 3] the stage priors' estimate of the SfM-to-WLI rotation (align.stage_turn) from the
+  registered photos with a tilt/azimuth prior, in the WLI world frame (whose axes are the WLI
+  priors' sample frame); None when fewer than two registered photos have one."""
+  have = [o for o in photos if o.name in c2w_sfm and o.prior and "tilt_deg" in o.prior]
+  if len(have) < 2:
+    return None
+  return align.stage_turn([c2w_sfm[o.name][:3, :3] for o in have],
+                          [wli.prior_rotation(o.prior) for o in have])
+
+
 def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_overlap: float = 0.2,
               min_fitness: float = 0.3, min_registered: float = 1.0, seed: int = 0,
               max_image_size: int = sfm.MAX_IMAGE_SIZE,
@@ -61,7 +72,7 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
                     "retake them with more overlap")
   forward = np.array([c[:3, 2] for c in rec.c2w.values()])
   al = align.align_om_to_wli(rec.points, reg.points, reg.normals, reg.voxel_um, forward,
-                             min_fitness, scene_dir)
+                             min_fitness, scene_dir, turn_hint=stage_hint(scene.om, rec.c2w))
   c2w_um = {name: align.om_c2w_um(c, al.S) for name, c in rec.c2w.items()}
   height, width = scene.om[0].shape
   gr = ground.ground_cameras(c2w_um, rec.points @ al.S[:3, :3].T + al.S[:3, 3], rec.observations,

@@ -54,6 +54,7 @@ def report_dict(a: Association, min_overlap: float) -> dict:
                 "height_cost": a.align.height_cost, "coverage": a.align.coverage,
                 "turn_margin": _finite(a.align.turn_margin),
                 "turn_runner_up_deg": _finite(a.align.turn_runner_up_deg),
+                "turn_source": a.align.turn_source, "prior_deg": _finite(a.align.prior_deg),
                 "residual_um": _stats(a.align.residuals_um)},
       "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
                  "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
