@@ -13,6 +13,7 @@ its time is the training wall time at that step (metrics.jsonl, compile included
 WORK/end_to_end.json and WORK/chamfer_vs_time.png.
 
   python benchmarks/end_to_end.py [--work DIR] [--steps N] [--points K] [--mesh-resolution R]
+                                 [--set COMPONENT.FIELD=VALUE ...]
 """
 
 from __future__ import annotations
@@ -48,9 +49,12 @@ def _timed(fn):
 
 
 def train_stage(scene_dir: Path, run_dir: Path, steps: int | None, points: int,
-                mesh_resolution: int | None):
-  """Trains like `python -m ofjax.train --data scene_dir --out run_dir`, keeping `points` checkpoints."""
+                mesh_resolution: int | None, sets: list[str]):
+  """Trains like `python -m ofjax.train --data scene_dir --out run_dir [--set ...]`, keeping
+  `points` checkpoints."""
   argv = ["--data", str(scene_dir), "--out", str(run_dir), "--quiet"]
+  for s in sets:
+    argv += ["--set", s]
   if steps:
     argv += ["--steps", str(steps)]
   if mesh_resolution:
@@ -108,14 +112,15 @@ def plot_curve(points: list[dict], path: Path, title: str) -> Path:
   return plots.save(fig, path)
 
 
-def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None) -> dict:
+def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None,
+        sets: list[str] = ()) -> dict:
   scene_dir, run_dir = work / "scene", work / "run"
   stages = {}
   _, stages["synth"] = _timed(lambda: _subprocess(
       "ofjax.synth", "--scene", "seed", "--resolution", "quick", "--out", str(scene_dir)))
   _, stages["associate"] = _timed(lambda: _subprocess("ofjax.associate", str(scene_dir)))
   (result, _), stages["train"] = _timed(
-      lambda: train_stage(scene_dir, run_dir, steps, points, mesh_resolution))
+      lambda: train_stage(scene_dir, run_dir, steps, points, mesh_resolution, list(sets)))
   mesh_path = run_dir / "mesh.ply"
   _, stages["export"] = _timed(lambda: export.main([str(run_dir), "--out", str(mesh_path)]))
   out, stages["eval"] = _timed(lambda: _subprocess(
@@ -126,10 +131,11 @@ def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None)
   pts = curve(run_dir, scene_dir, result, skip={last})
   pts.append({"step": last, "train_s": result.seconds, "chamfer_um": final["chamfer_um"]})
   summary = {"stages_s": stages, "total_s": sum(stages.values()), "steps": last,
-             "preset": result.cfg.preset, "train_s_per_step": result.seconds / last,
+             "preset": result.cfg.preset, "set": list(sets),
+             "fingerprint": result.cfg.fingerprint(), "train_s_per_step": result.seconds / last,
              "curve": pts, "jax": jax.__version__, "backend": jax.default_backend()}
-  plot_curve(pts, work / "chamfer_vs_time.png",
-             f"ofjax {result.cfg.preset} preset, seed scene: Chamfer vs time")
+  variant = "+".join([result.cfg.preset, *sets])
+  plot_curve(pts, work / "chamfer_vs_time.png", f"ofjax {variant}, seed scene: Chamfer vs time")
   fileio.write_json(work / "end_to_end.json", metrics.json_ready(summary))
   return summary
 
@@ -143,12 +149,14 @@ def main(argv=None) -> int:
   p.add_argument("--steps", type=int, help="training steps (default: the cpu preset's)")
   p.add_argument("--points", type=int, default=4, help="checkpoints on the Chamfer curve")
   p.add_argument("--mesh-resolution", type=int, help="marching-cubes resolution (default: preset's)")
+  p.add_argument("--set", dest="sets", action="append", default=[], metavar="COMPONENT.FIELD=VALUE",
+                 help="override a field of the cpu preset, as the train CLI's --set (repeatable)")
   args = p.parse_args(argv)
   if args.points < 1:
     raise UserError(f"--points {args.points}: must be positive")
   if (args.work / "scene").exists() or (args.work / "run").exists():
     raise UserError(f"{args.work}: holds a previous benchmark; pass another --work or delete it")
-  summary = run(args.work, args.steps, args.points, args.mesh_resolution)
+  summary = run(args.work, args.steps, args.points, args.mesh_resolution, args.sets)
   for name, seconds in summary["stages_s"].items():
     print(f"{name:<10} {seconds:8.1f} s")
   print(f"{'total':<10} {summary['total_s']:8.1f} s  ({summary['steps']} steps, "
