@@ -112,7 +112,7 @@ def ray_split(cfg: Config) -> tuple[int, int]:
     return n, 0
   if mods == {"om"}:
     return 0, n
-  n_wli = int(round(n * cfg.train.wli_share))
+  n_wli = int(n * cfg.train.wli_share)  # floor: a share of 0.5 splits as n // 2 always did
   return n_wli, n - n_wli
 
 

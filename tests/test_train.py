@@ -58,6 +58,12 @@ def test_ray_split_follows_the_modalities(modalities, share, expect):
   assert train.ray_split(cfg) == expect
 
 
+@pytest.mark.parametrize("n", [127, 128, 129, 130])
+def test_even_share_splits_as_before(n):
+  """share 0.5 keeps the fused split n // 2 WLI rays (odd n included): earlier runs reproduce."""
+  assert train.ray_split(resolve("cpu", train={"n_rays": n})) == (n // 2, n - n // 2)
+
+
 @pytest.mark.parametrize("share", [0.0, 1.0, 1.5])
 def test_wli_share_outside_the_open_interval_is_refused(share):
   with pytest.raises(ValueError, match="wli_share"):

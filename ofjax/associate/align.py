@@ -23,11 +23,13 @@ candidate gets a rigid ICP at its scale on coarse clouds and is scored on a coar
 the best few distinct ones get a 1-D search over the scale (rigid refit at every scale, fine
 height map); the best is polished by robust point-to-plane least squares with scaling (`_polish`),
 which sets the final scale, tilt and offset more finely than the height cost's cells. A sample
-that is symmetric to the data (a MEMS die turned by 180 degrees) leaves finalists whose height
-costs lie within TURN_WARN_MARGIN of the best; when the photos carry stage priors (tilt and
-azimuth, as the WLI scans'), `stage_turn` estimates the similarity's rotation from them and the
-near-equal finalist closest to it is taken. The priors decide nothing else: a clear winner of
-the height cost stands even where the priors disagree (the CLI warns). The result
+that is symmetric to the data (a MEMS die turned by 180 degrees) leaves finalists turned from
+one another that fit about equally well. When the photos carry stage priors (tilt and azimuth,
+as the WLI scans'), `stage_turn` estimates the similarity's rotation from them, the finalists
+are polished and compared by the polish's objective, and where turns within TURN_WARN_MARGIN of
+the best remain, the priors choose the turn (the one nearest their estimate) and the data the
+fit within it (`_choose_turn`). The priors decide nothing else: a clear winner stands even where
+they disagree (the CLI warns). The result
 is rejected (UserError) when too few SfM points meet the WLI surface, or when the polish's
 objective has no clear minimum at the found scale (scale_is_determined: the scale is then not
 determined by the data, and wrong poses must not be written).
@@ -90,8 +92,9 @@ class Alignment:
   initial_scale: float  # the spread-ratio estimate of s
   height_cost: float  # the fine height cost of S (module docstring), 0 = every point on H
   coverage: float  # share of the WLI footprint with an aligned SfM point nearby
-  turn_margin: float  # relative height-cost gap to the best solution turned > DISTINCT_DEG away
-  # (negative when the stage priors chose a finalist that costs slightly more than the best)
+  # relative cost gap to the best solution turned > DISTINCT_DEG away: the height cost's, or the
+  # polish objective's where the stage priors decided (negative when they chose the costlier turn)
+  turn_margin: float
   turn_runner_up_deg: float  # that solution's turn from the winner (NaN if there is none)
   turn_source: str = "data"  # "priors" when the photos' stage priors chose among near-equal turns
   prior_deg: float = float("nan")  # rotation angle from the priors' estimate (NaN without priors)
