@@ -82,9 +82,10 @@ class LossConfig:
   lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
   lambda_wli: float = 1.0  # WLI depth MSE in reference units (TrainConfig.reference_unit; voids masked)
   # SDF^2 (reference units) at the measured WLI points, o + D d: the depth loss constrains only the
-  # rendered expectation of a ray's weights, this term the surface itself. Not in the paper: 0
-  # (at 10 the cpu preset's fused Chamfer fell to 0.66x over the five scenes at 600 steps,
-  # experiments/README.md; not yet adopted: the committed ablation is without it).
+  # rendered expectation of a ray's weights, this term the surface itself (without it the
+  # substrate's zero level sits ~0.8 um below the measured one). Not in the paper: 0. At 30 the
+  # cpu preset's fused Chamfer fell to 0.66x over the five scenes at 600 steps
+  # (experiments/README.md); not yet adopted: the committed ablation is without it.
   lambda_wli_surface: float = 0.0
   lambda_eikonal: float = 0.1  # (|grad sdf| - 1)^2 on all samples
   lambda_sparsity: float = 0.01  # exp(-scale * |sdf|) of the reference, on uniform samples
