@@ -113,14 +113,14 @@ def plot_curve(points: list[dict], path: Path, title: str) -> Path:
 
 
 def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None,
-        sets: list[str] = ()) -> dict:
+        sets: list[str]) -> dict:
   scene_dir, run_dir = work / "scene", work / "run"
   stages = {}
   _, stages["synth"] = _timed(lambda: _subprocess(
       "ofjax.synth", "--scene", "seed", "--resolution", "quick", "--out", str(scene_dir)))
   _, stages["associate"] = _timed(lambda: _subprocess("ofjax.associate", str(scene_dir)))
   (result, _), stages["train"] = _timed(
-      lambda: train_stage(scene_dir, run_dir, steps, points, mesh_resolution, list(sets)))
+      lambda: train_stage(scene_dir, run_dir, steps, points, mesh_resolution, sets))
   mesh_path = run_dir / "mesh.ply"
   _, stages["export"] = _timed(lambda: export.main([str(run_dir), "--out", str(mesh_path)]))
   out, stages["eval"] = _timed(lambda: _subprocess(
@@ -131,7 +131,7 @@ def run(work: Path, steps: int | None, points: int, mesh_resolution: int | None,
   pts = curve(run_dir, scene_dir, result, skip={last})
   pts.append({"step": last, "train_s": result.seconds, "chamfer_um": final["chamfer_um"]})
   summary = {"stages_s": stages, "total_s": sum(stages.values()), "steps": last,
-             "preset": result.cfg.preset, "set": list(sets),
+             "preset": result.cfg.preset, "set": sets,
              "fingerprint": result.cfg.fingerprint(), "train_s_per_step": result.seconds / last,
              "curve": pts, "jax": jax.__version__, "backend": jax.default_backend()}
   variant = "+".join([result.cfg.preset, *sets])

@@ -173,7 +173,8 @@ def sdf_and_feature(params, x, cfg: Config, encode=encoding.encode):
 
 
 def sdf_value(params, x, cfg: Config):
-  """[...] SDF at points x: [..., 3] (no gradient computation: sampling and export)."""
+  """[...] SDF at points x: [..., 3] without its spatial gradient (sampling, export and the WLI
+  surface loss; differentiable in params)."""
   return sdf_and_feature(params, x, cfg)[..., 0]
 
 

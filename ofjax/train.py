@@ -197,10 +197,9 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
   in it, as in the reference code. The batch's WLI rays (its first ray_split(cfg)[0]) are not
   coloured: only OM rays enter the colour losses.
   """
-  geometry_fn, color_fn, sdf_fn = field_fns(params, cfg)
   n_wli = ray_split(cfg)[0]
   # sigmoid(s_ref * sdf_ref) with sdf_ref = unit * sdf: s per normalised unit is unit * s_ref.
-  out = render.render_rays(geometry_fn, color_fn, sdf_fn, batch["o"], batch["d"], batch["near"],
+  out = render.render_rays(*field_fns(params, cfg), batch["o"], batch["d"], batch["near"],
                            batch["far"], key, unit * fields.inv_s(params),
                            render.cos_anneal_ratio(step, cfg.render), cfg.render,
                            guide=batch["depth"], has_guide=batch["wli_ok"], n_uncolored=n_wli)
@@ -214,7 +213,8 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
   }
   if lc.lambda_wli_surface and n_wli:  # static: a run without the term compiles without it
     points = batch["o"][:n_wli] + batch["d"][:n_wli] * batch["depth"][:n_wli, None]
-    terms["wli_surface"] = losses.wli_surface(unit * geometry_fn(points)[0],
+    # The SDF alone, differentiable in params: its spatial gradient is not needed here.
+    terms["wli_surface"] = losses.wli_surface(unit * fields.sdf_value(params, points, cfg),
                                               batch["wli_ok"][:n_wli])
   total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
   logs = {f"loss/{k}": v for k, v in terms.items()}

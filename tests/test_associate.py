@@ -258,25 +258,20 @@ def test_stage_turn_recovers_the_rotation_from_noisy_priors():
   assert rot_deg(got.T @ truth.as_matrix()) < 0.5
 
 
-def _similarity(scale: float, rot: np.ndarray) -> np.ndarray:
-  m = np.eye(4)
-  m[:3, :3] = scale * rot
-  return m
-
-
 def test_choose_turn_lets_priors_pick_the_turn_and_data_the_fit():
+  sim = lambda s, rot: align._similarity(s, rot, np.zeros(3))
   turn = Rotation.from_euler("z", 180, degrees=True).as_matrix()
-  a, b = _similarity(2.0, np.eye(3)), _similarity(2.0, turn)
+  a, b = sim(2.0, np.eye(3)), sim(2.0, turn)
   near = [(1.00, a, "cameras"), (1.0 + align.TURN_WARN_MARGIN / 2, b, "cameras")]
   assert align._choose_turn(near, turn) == 1
   assert align._choose_turn(near, np.eye(3)) == 0
   clear = [(1.00, a, "cameras"), (1.0 + 2 * align.TURN_WARN_MARGIN, b, "cameras")]
   assert align._choose_turn(clear, turn) is None  # a clear winner stands against the priors
-  same_turn = [(1.00, a, "cameras"), (1.01, _similarity(2.1, np.eye(3)), "fpfh")]
+  same_turn = [(1.00, a, "cameras"), (1.01, sim(2.1, np.eye(3)), "fpfh")]
   assert align._choose_turn(same_turn, turn) is None
   # Within the turn the priors point at, the cheapest wins, not the one nearest the priors.
   nudged = Rotation.from_euler("z", 181, degrees=True).as_matrix()
-  three = [(1.00, a, "cameras"), (1.02, b, "cameras"), (1.03, _similarity(2.0, nudged), "fpfh")]
+  three = [(1.00, a, "cameras"), (1.02, b, "cameras"), (1.03, sim(2.0, nudged), "fpfh")]
   assert align._choose_turn(three, nudged) == 1
 
 

@@ -395,7 +395,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   final_gate = POLISH_GATES_VOXELS[-1] * wli_voxel_um
   fit_args = (p_wli, wli_normals, tree, hm_fine)
   polish = lambda S: _polish(p_om, S, *fit_args, wli_voxel_um)
-  cost, S, seed = finals[0]
+  _, S, seed = finals[0]
   ranked, chosen, turn_source = finals, 0, "data"
   hint = None if turn_hint is None else level[:3, :3] @ turn_hint
   if hint is not None:
@@ -411,7 +411,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
     if k is not None:
       ranked, chosen, turn_source = contenders, k, "priors"
       if _angle_deg(_rotation(contenders[k][1]), _rotation(S)) > DISTINCT_DEG:
-        cost, S, seed = contenders[k]  # the priors turn the data's choice
+        _, S, seed = contenders[k]  # the priors turn the data's choice
   # A (nearly) symmetric sample fits a turned copy almost as well; the margin says how clearly
   # the data chose the turn (the CLI warns when it is small).
   turned = [(c - ranked[chosen][0], _angle_deg(_rotation(ranked[chosen][1]), _rotation(T)))
