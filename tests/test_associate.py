@@ -185,6 +185,36 @@ def test_pose_errors_removes_gauge_and_measures_perturbation():
   assert rows["om/0002"]["rot_deg"] == pytest.approx(0.3, abs=1e-6)
   assert rows["om/0002"]["trans_um"] == pytest.approx(2.0, abs=1e-6)
   assert rows["om/0002"]["centre_rel"] == pytest.approx(2.0 / size, rel=1e-6)
+  axis = np.asarray(next(c for c in gt["cameras"] if c["name"] == "om/0002")["c2w"])[:3, 2]
+  assert rows["om/0002"]["centre_along_um"] == pytest.approx(2.0 * axis[0], abs=1e-6)
+  assert rows["om/0002"]["centre_lateral_um"] == pytest.approx(2.0 * np.hypot(axis[1], axis[2]),
+                                                               abs=1e-6)
+
+
+def test_pose_errors_separates_the_om_blocks_similarity_from_each_cameras_error():
+  """The OM cameras scaled by 1.004 and turned by 0.3 deg about the vertical through the sample
+  (what step 2 can get wrong for all of them): the similarity's scale and angle are exactly those
+  and nothing is left after it; one camera moved 3 um more on top is what is left."""
+  scans = wli_scans(MESH_GT)
+  size = scene_size(scans)
+  _, gt = unposed(scene_lib.Scene(scans, om_images(MESH_GT, OM_VIEWS[:5])))
+  est = json.loads(json.dumps(gt))
+  block = trimesh.transformations.rotation_matrix(np.radians(0.3), (0, 0, 1), (1, 2, 0))
+  block[:3, :3] *= 1.004
+  for c in est["cameras"]:
+    if c["modality"] == "om":
+      m = np.asarray(c["c2w"])
+      m[:3, 3] = block[:3, :3] @ m[:3, 3] + block[:3, 3]
+      c["c2w"] = m.tolist()
+  om = evaluate.pose_errors(est, gt, size)["summary"]["om"]
+  assert om["scale_error"] == pytest.approx(1.0 - 1.0 / 1.004, abs=1e-9)  # est -> gt: 1 / 1.004
+  assert om["similarity_rot_deg"] == pytest.approx(0.3, abs=1e-6)
+  assert om["max_centre_rel_after_similarity"] < 1e-9
+  cam = next(c for c in est["cameras"] if c["name"] == "om/0003")
+  cam["c2w"] = (np.asarray(cam["c2w"]) + np.pad(np.array([[0.0], [3.0], [0.0]]), ((0, 1), (3, 0))
+                                                )).tolist()
+  left = evaluate.pose_errors(est, gt, size)["summary"]["om"]["max_centre_rel_after_similarity"]
+  assert 0.5 * 3.0 / size < left < 3.0 / size  # the least-squares fit shares out part of it
 
 
 # ------------------------------------------------------------------------------ step 1: WLI

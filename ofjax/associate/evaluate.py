@@ -6,8 +6,11 @@ Umeyama, TransformationEstimationPointToPoint) over the WLI cameras only - their
 points one scene size along each of their axes, so rotations weigh as much as positions - because
 the WLI scans define the um frame; the OM cameras are then compared in that same gauge, so their
 errors include step 2's. Errors per camera: rotation angle of R_gt^T R_est (degrees) and distance
-between camera origins (um; WLI also in pixels). The OM scale error is |s - 1| of a similarity
-fitted from the gauge-aligned OM camera centres to the true ones.
+between camera origins (um; WLI also in pixels; OM also split into its part along the true optical
+axis and the lateral rest). The OM scale error is |s - 1| of a similarity fitted from the
+gauge-aligned OM camera centres to the true ones; that similarity's rotation angle and the largest
+centre error left after it separate what the OM block shares (step 2's scale and turn) from each
+camera's own error (the SfM's).
 """
 
 from __future__ import annotations
@@ -73,6 +76,9 @@ def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
       row["trans_px"] = row["trans_um"] / float(np.mean(cg["intrinsics"]["pixel_size"]))
     else:
       row["centre_rel"] = row["trans_um"] / scene_size
+      along = float(np.dot(m[:3, 3] - mg[:3, 3], mg[:3, 2]))  # + : behind the true camera
+      row["centre_along_um"] = along
+      row["centre_lateral_um"] = float(np.sqrt(max(row["trans_um"] ** 2 - along ** 2, 0.0)))
     rows.append(row)
   summary = {"scene_size_um": scene_size}
   for mod in ("wli", "om"):
@@ -86,11 +92,18 @@ def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
   om = [r["name"] for r in rows if r["modality"] == "om" and r["registered"]]
   if om:
     summary["om"]["max_centre_rel"] = max(r["centre_rel"] for r in rows if r["name"] in om)
+    summary["om"]["median_centre_along_um"] = float(np.median(
+        [abs(r["centre_along_um"]) for r in rows if r["name"] in om]))
   if len(om) >= 3:
     src = np.array([(G @ np.asarray(e[n]["c2w"]))[:3, 3] for n in om])
     dst = np.array([np.asarray(g[n]["c2w"])[:3, 3] for n in om])
-    summary["om"]["scale_error"] = abs(float(np.cbrt(np.linalg.det(_fit(src, dst, True)[:3, :3])))
-                                       - 1.0)
+    sim = _fit(src, dst, True)
+    scale = float(np.cbrt(np.linalg.det(sim[:3, :3])))
+    summary["om"]["scale_error"] = abs(scale - 1.0)
+    summary["om"]["similarity_rot_deg"] = rotation_deg(sim[:3, :3] / scale, np.eye(3))
+    left = src @ sim[:3, :3].T + sim[:3, 3] - dst
+    summary["om"]["max_centre_rel_after_similarity"] = float(np.linalg.norm(left, axis=1).max()
+                                                             / scene_size)
   return {"summary": summary, "cameras": rows}
 
 
