@@ -38,7 +38,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ofjax import fileio, plots
+from ofjax import fileio, meshfile, plots
 from ofjax import scene as scn
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import MeshQuery
@@ -207,14 +207,13 @@ def main(argv: list[str] | None = None) -> int:
   scene = scn.load_scene(args.scene, poses=args.poses)
   mesh, stats = reconstruct(scene, cfg)
   path = args.out / "mesh.ply"
-  with fileio.atomic_path(path) as tmp:
-    mesh.export(tmp, file_type="ply")
+  meshfile.write_mesh(mesh, path, scene.units)
   plots.mesh_preview(args.out / "mesh.png", mesh.vertices, mesh.faces,
                      np.asarray(mesh.visual.vertex_colors[:, :3]) / 255.0,
                      f"conventional baseline of {args.scene.name} (top view)")
   fileio.write_json(args.out / "config.json", {
       "method": "conventional: screened Poisson (open3d) on the merged WLI cloud + OM colour "
-                "projection", "units": "um", "scene": str(args.scene),
+                "projection", "units": scene.units, "scene": str(args.scene),
       "poses": str(args.poses or args.scene / "poses.json"), **dataclasses.asdict(cfg), **stats})
   print(f"ofjax.conventional: {stats['vertices']} vertices, {stats['faces']} faces from "
         f"{stats['wli_points']} WLI points ({stats['unseen_vertices']} vertices seen by no photo); "

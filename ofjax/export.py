@@ -22,12 +22,12 @@ import numpy as np
 import trimesh
 from skimage import measure
 
-from ofjax import checkpoint, fields, fileio
+from ofjax import checkpoint, fields
 from ofjax import scene as scene_lib
 from ofjax.config import Config
 from ofjax.errors import UserError, cli
+from ofjax.meshfile import FORMATS, write_mesh
 
-FORMATS = ("ply", "obj", "glb")
 CHUNK = 1 << 16  # points per device call: bounded memory on a laptop
 
 
@@ -79,24 +79,6 @@ def drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh
   out.update_faces(keep)
   out.remove_unreferenced_vertices()
   return out
-
-
-PLY_UNITS_COMMENT = b"comment units: micrometres (um)"
-
-
-def write_mesh(mesh: trimesh.Trimesh, path: Path, units: str = "um") -> Path:
-  """Writes PLY/OBJ/GLB atomically; a PLY says its unit in a header comment."""
-  fmt = path.suffix.lstrip(".").lower()
-  if fmt not in FORMATS:
-    raise UserError(f"{path}: unknown mesh format {fmt!r}; use one of {', '.join(FORMATS)}")
-  data = mesh.export(file_type=fmt)
-  if isinstance(data, str):
-    data = data.encode()
-  if fmt == "ply":
-    comment = PLY_UNITS_COMMENT if units == "um" else f"comment units: {units}".encode()
-    data = data.replace(b"\n", b"\n" + comment + b"\n", 1)
-  fileio.write_bytes(path, data)
-  return path
 
 
 def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,

@@ -3,10 +3,11 @@
 import json
 
 import numpy as np
+import open3d as o3d
 import pytest
 import trimesh
 
-from ofjax import conventional, metrics
+from ofjax import conventional, meshfile, metrics
 from ofjax import scene as scn
 from analytic_scene import look_at
 from plates import grid_plate
@@ -67,6 +68,10 @@ def test_poisson_baseline_on_a_synthetic_scene(tmp_path):
   assert (tmp_path / "conv" / "mesh.png").stat().st_size > 0
   gt, meta = evaluation.load_ground_truth(out)
   mesh = trimesh.load(tmp_path / "conv" / "mesh.ply", process=False)
+  # The same file as the neural export writes: the unit in its header, readable by Open3D.
+  assert meshfile.PLY_UNITS_COMMENT in (tmp_path / "conv" / "mesh.ply").read_bytes()[:400]
+  assert len(o3d.io.read_triangle_mesh(str(tmp_path / "conv" / "mesh.ply")).triangles) == len(
+      mesh.faces)
   s = evaluation.with_pixels(metrics.evaluate(mesh, gt, n_samples=50_000).summary, meta)
   # Where the WLI measured, Poisson interpolates exact depths (sub-pixel); only the steep flanks
   # the WLI leaves void (the paper's NA model) are guessed. DESIGN.md: ~0.3 WLI pixel; measured

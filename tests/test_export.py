@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ofjax import export
+from ofjax import export, meshfile
 from ofjax import scene as scene_lib
 
 RADIUS = 0.6  # normalised units
@@ -37,7 +37,7 @@ def test_sphere_sdf_exports_a_sphere_in_um_with_its_colours(tmp_path):
   np.testing.assert_allclose(rgb, expected, atol=1.0 / 255 + 1e-6)
 
   path = export.write_mesh(mesh, tmp_path / "sphere.ply")
-  assert export.PLY_UNITS_COMMENT in path.read_bytes()[:400]
+  assert meshfile.PLY_UNITS_COMMENT in path.read_bytes()[:400]
   back = trimesh.load(path, process=False)
   np.testing.assert_allclose(np.asarray(back.vertices), v, rtol=1e-6)
   np.testing.assert_array_equal(np.asarray(back.visual.vertex_colors)[:, :3],
