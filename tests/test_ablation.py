@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 import ablation  # noqa: E402
@@ -86,6 +87,24 @@ def test_no_surface_note_says_when_only_some_seeds_had_none():
   note = [b for b in ablation.differences(rows, ["seed", "wing"], 600) if "OM only" in b]
   assert len(note) == 1 and "on 2 of 2 scenes (seed, wing)" in note[0]
   assert "on seed in some of the seeds only" in note[0]
+
+
+def test_accuracy_and_completeness_tables_carry_the_chamfers_halves():
+  def rec(scene, seed, ev):
+    return {"job": {"scene": scene, "variant": "fused", "seed": seed,
+                    "params": {"poses_source": "true"}}, "result": {"eval": ev}}
+  ev = lambda acc, comp: {"chamfer_um": (acc + comp) / 2, "chamfer_px": 1.0,  # noqa: E731
+                          "fscore": [{"fscore": 0.9}], "albedo_psnr": 20.0, "accuracy_um": acc,
+                          "completeness_um": comp}
+  old = {"chamfer_um": 1.0, "chamfer_px": 1.0, "fscore": [{"fscore": 0.9}], "albedo_psnr": 20.0}
+  rows = ablation.summarise([rec("seed", 0, ev(0.9, 0.3)), rec("seed", 1, ev(1.1, 0.5)),
+                             rec("wing", 0, old)])["true"]
+  assert rows["seed"]["fused"]["accuracy_um"][:1] == (1.0,)
+  assert rows["seed"]["fused"]["completeness_um"][0] == pytest.approx(0.4)
+  assert np.isnan(rows["wing"]["fused"]["accuracy_um"][0])  # evaluated before: not measured
+  line = next(x for x in ablation.metric_table(rows, ["seed", "wing"], "accuracy_um").splitlines()
+              if x.startswith("| Fused |"))
+  assert "| 1 ± 0.14 (n=2) | n/a |" in line
 
 
 def test_figure_marks_a_kept_run_whose_directory_is_gone(tmp_path):
