@@ -1,8 +1,8 @@
 """Mesh files as ofjax writes them: PLY, OBJ or GLB, atomically, a PLY naming its length unit.
 
 The unit goes in a PLY header comment placed after the `format` line: the PLY grammar wants
-`format` right after `ply`, and readers that follow it (RPly in Open3D, MeshLab's) refuse a header
-where a comment comes first.
+`format` right after `ply`, and readers that hold to it (RPly, Open3D's) refuse a header where a
+comment comes first (Open3D read 0 triangles from such files).
 """
 
 from __future__ import annotations

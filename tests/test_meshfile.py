@@ -24,7 +24,7 @@ def test_ply_header_keeps_the_grammars_order_and_open3d_reads_it_whole(box, tmp_
   header = path.read_bytes().split(b"end_header")[0].split(b"\n")
   assert header[0] == b"ply" and header[1].startswith(b"format ")
   assert comment in header
-  # RPly (Open3D), like MeshLab's reader, refuses a header whose second line is not `format`.
+  # RPly (Open3D's reader) refuses a header whose second line is not `format`.
   back = o3d.io.read_triangle_mesh(str(path))
   np.testing.assert_allclose(np.asarray(back.vertices), box.vertices, rtol=1e-6)
   np.testing.assert_array_equal(np.asarray(back.triangles), box.faces)
