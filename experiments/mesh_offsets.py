@@ -16,20 +16,18 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 import trimesh
+
+from ofjax.meshquery import MeshQuery, load_mesh
 
 MAX_VERTICES = 40_000  # a random subset of each mesh (seed 0): enough for medians and shares
 
 
 def signed_offsets(gt: trimesh.Trimesh, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """(signed [N], |n_z| [N]) of points v [N, 3] against the nearest faces of gt."""
-  scene = o3d.t.geometry.RaycastingScene()
-  scene.add_triangles(np.asarray(gt.vertices, np.float32), np.asarray(gt.faces, np.uint32))
-  hit = scene.compute_closest_points(o3d.core.Tensor(np.asarray(v, np.float32)))
-  normals = np.asarray(gt.face_normals)[hit["primitive_ids"].numpy()]
-  signed = np.einsum("ij,ij->i", v - hit["points"].numpy(), normals)
-  return signed, np.abs(normals[:, 2])
+  near = MeshQuery.of(gt).closest(v)
+  signed = np.einsum("ij,ij->i", v - near["points"], near["normal"])
+  return signed, np.abs(near["normal"][:, 2])
 
 
 def main(argv=None) -> int:
@@ -38,9 +36,9 @@ def main(argv=None) -> int:
   p.add_argument("meshes", type=Path, nargs="+")
   p.add_argument("--beyond", type=float, default=1.5, help="um (default 1.5)")
   args = p.parse_args(argv)
-  gt = trimesh.load(args.gt, process=False)
+  gt = load_mesh(args.gt)
   for path in args.meshes:
-    v = np.asarray(trimesh.load(path, process=False).vertices)
+    v = np.asarray(load_mesh(path).vertices)
     v = v[np.random.default_rng(0).choice(len(v), min(MAX_VERTICES, len(v)), replace=False)]
     signed, nz = signed_offsets(gt, v)
     far = np.abs(signed) > args.beyond
