@@ -463,9 +463,9 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
            f"{settings['machine']['cpus']} CPUs (load average at start "
            f"{settings['load_average']}); workers {settings['workers']}"
            + (f", Ray at {settings['ray']}" if settings["ray"] else "") + ".", "",
-           "Chamfer = mean of accuracy (mesh -> truth) and completeness (truth -> mesh) in um (lower is better); F-score at 1% of the "
-           "GT diagonal (higher is better); albedo PSNR of the vertex colours against the true "
-           "albedo in dB. Cells with several seeds are mean ± sample std (n seeds).", ""]
+           "Chamfer = mean of accuracy (mesh -> truth) and completeness (truth -> mesh) in um "
+           "(lower is better); F-score at 1% of the GT diagonal (higher is better); albedo PSNR "
+           "of the vertex colours against the true albedo in dB. Cells with several seeds are mean ± sample std (n seeds).", ""]
   for ps, rows in summary.items():
     scenes = [s for s in scenes_all if s in rows]
     lines += [f"## Poses: {ps}", ""]

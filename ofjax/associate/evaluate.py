@@ -89,11 +89,12 @@ def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
                     "max_trans_um": max((r["trans_um"] for r in ok), default=float("nan"))}
     if mod == "wli":
       summary[mod]["max_trans_px"] = max((r["trans_px"] for r in ok), default=float("nan"))
-  om = [r["name"] for r in rows if r["modality"] == "om" and r["registered"]]
+  om_rows = [r for r in rows if r["modality"] == "om" and r["registered"]]
+  om = [r["name"] for r in om_rows]
   if om:
-    summary["om"]["max_centre_rel"] = max(r["centre_rel"] for r in rows if r["name"] in om)
+    summary["om"]["max_centre_rel"] = max(r["centre_rel"] for r in om_rows)
     summary["om"]["median_centre_along_um"] = float(np.median(
-        [abs(r["centre_along_um"]) for r in rows if r["name"] in om]))
+        [abs(r["centre_along_um"]) for r in om_rows]))
   if len(om) >= 3:
     src = np.array([(G @ np.asarray(e[n]["c2w"]))[:3, 3] for n in om])
     dst = np.array([np.asarray(g[n]["c2w"])[:3, 3] for n in om])
