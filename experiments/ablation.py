@@ -9,7 +9,8 @@ by `ofjax.associate`, and `true`, the synthetic ground truth, as a second table)
   fused         WLI + OM, the full model
 each evaluated against the scene's truth by `ofjax.eval` (Chamfer in um, F-score, albedo PSNR).
 Seeds (--seeds) are training seeds of the default scene `seed`; the other scenes run with the
-first of them. The synthetic scenes are always rendered with synth seed 0 (one scene, many
+first of them; --true-seeds gives the true-pose table its own (fewer) seeds, since it is the
+reference the associated table is read against, not a second spread. The synthetic scenes are always rendered with synth seed 0 (one scene, many
 trainings), so a spread over seeds is the training's spread.
 
 Stages run as subprocesses of the ofjax CLIs, jobs through `experiments/sweep.py` (processes with
@@ -523,6 +524,13 @@ def _list(text: str, allowed: tuple[str, ...], option: str) -> list[str]:
   return items
 
 
+def _seeds(text: str, option: str) -> list[int]:
+  try:
+    return [int(s) for s in text.split(",")]
+  except ValueError:
+    raise UserError(f"{option} {text}: give integers separated by commas, e.g. 0,1,2") from None
+
+
 @cli
 def main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else list(argv)
@@ -532,6 +540,8 @@ def main(argv=None) -> int:
   p.add_argument("--variants", default=",".join(VARIANTS), help="comma list (default: all five)")
   p.add_argument("--seeds", default="0", help="training seeds of the default scene `seed`, e.g. "
                  "0,1,2; the other scenes use the first")
+  p.add_argument("--true-seeds", help="seeds of the default scene in the true-pose table "
+                 "(default: --seeds)")
   p.add_argument("--poses", default=",".join(POSE_SOURCES),
                  help="associate (ofjax.associate), true (ground truth), or both (default)")
   p.add_argument("--true-poses", action="store_true", help="same as --poses true")
@@ -548,10 +558,8 @@ def main(argv=None) -> int:
   scenes = _list(args.scenes, SCENES, "--scenes")
   variants = _list(args.variants, VARIANTS, "--variants")
   poses = ["true"] if args.true_poses else _list(args.poses, POSE_SOURCES, "--poses")
-  try:
-    seeds = [int(s) for s in args.seeds.split(",")]
-  except ValueError:
-    raise UserError(f"--seeds {args.seeds}: give integers separated by commas, e.g. 0,1,2") from None
+  seeds = _seeds(args.seeds, "--seeds")
+  seeds_of = {"associate": seeds, "true": _seeds(args.true_seeds or args.seeds, "--true-seeds")}
   if args.steps is not None and args.steps < 1 or args.workers < 1:
     raise UserError("--steps and --workers must be positive")
 
@@ -578,7 +586,7 @@ def main(argv=None) -> int:
       pose_file = scene_dir / ("poses.json" if ps == "associate" else "ground_truth/poses.json")
       for v in variants:
         # Poisson is deterministic: one run, whatever the seeds.
-        for seed in (seeds[:1] if v == "conventional" or s != DEFAULT_SCENE else seeds):
+        for seed in (seeds_of[ps][:1] if v == "conventional" or s != DEFAULT_SCENE else seeds_of[ps]):
           name = f"{ps}_{s}_{v}_seed{seed}"
           jobs.append(sweep.Job(scene=s, variant=v, seed=seed,
                                 result=str(work / "records" / f"{name}.json"),
@@ -593,12 +601,13 @@ def main(argv=None) -> int:
   for ps in poses:
     for s in scenes:
       done = [r for r in records if "result" in r and r["job"]["scene"] == s
-              and r["job"]["params"]["poses_source"] == ps and r["job"]["seed"] == seeds[0]]
+              and r["job"]["params"]["poses_source"] == ps and r["job"]["seed"] == seeds_of[ps][0]]
       if done:
         path = args.out / "figures" / f"{ps}_{s}.png"
         figure(path, s, done)
         figures[(ps, s)] = str(path.relative_to(args.out))
-  settings = {"argv": argv, "scenes": scenes, "variants": variants, "seeds": seeds, "poses": poses,
+  settings = {"argv": argv, "scenes": scenes, "variants": variants, "seeds": seeds,
+              "true_seeds": seeds_of["true"], "poses": poses,
               "steps": args.steps, "resolution": args.resolution, "preset": "cpu",
               "preset_fingerprint": fingerprint,
               "full_budget": args.steps is None and args.resolution == "quick"
