@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from typing import Callable
@@ -34,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ofjax import encoding
+from ofjax import encoding, machine
 from ofjax.config import HashConfig
 from ofjax.errors import UserError, cli
 
@@ -89,13 +88,6 @@ def time_call(fn, args, repeats: int) -> tuple[float, float]:
   return float(np.median(wall)), float(np.median(cpu))
 
 
-def machine() -> str:
-  dev = jax.devices()[0]
-  return (f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, Python "
-          f"{platform.python_version()}, JAX {jax.__version__}, backend {jax.default_backend()} "
-          f"({dev.device_kind})")
-
-
 @cli
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -106,7 +98,7 @@ def main(argv=None) -> int:
   p.add_argument("--repeats", type=int, default=5, help="timed calls per row (median reported)")
   p.add_argument("--only", nargs="*", default=None, help="run only these rows")
   args = p.parse_args(argv)
-  print(machine())
+  print(machine.line(machine.describe(devices=True)))
   print(f"{args.points} points per call, median of {args.repeats} calls, warm-up excluded")
   print(f"load average {os.getloadavg()[0]:.1f} at start")
   print(f"{'log2 T':>6} {'groups':>6}  {'function':<22} {'wall ms':>9} {'samples/s':>12} "

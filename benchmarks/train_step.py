@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import sys
 import time
@@ -35,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ofjax import config, encoding, fields, synth, train
+from ofjax import config, encoding, fields, machine, synth, train
 from ofjax import scene as scene_lib
 from ofjax.config import Config
 from ofjax.errors import UserError, cli
@@ -135,18 +133,6 @@ def time_step(cfg: Config, data: train.TrainData, field_fns, steps: int) -> dict
           "peak_mem_mb": device_peak if device_peak is not None else _peak_rss_mb() - rss0}
 
 
-def machine() -> dict:
-  model = platform.processor() or platform.machine()
-  try:
-    with open("/proc/cpuinfo") as f:
-      model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-  except (OSError, StopIteration):
-    pass
-  return {"cpu": model, "cores": os.cpu_count(), "jax": jax.__version__,
-          "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
-          "python": platform.python_version()}
-
-
 def benchmark_scene() -> scene_lib.Scene:
   """The default synthetic scene (seed, quick) with its true poses."""
   scene, gt = synth.make_scene("seed", resolution="quick")
@@ -178,8 +164,7 @@ def run(specs: list[str], rays, samples, steps, naive: bool, bound: bool = False
 
 
 def table(results: dict, info: dict) -> str:
-  lines = [f"machine: {info['cpu']} ({info['cores']} cores); jax {info['jax']}, backend "
-           f"{info['backend']}, devices {len(info['devices'])}",
+  lines = [f"machine: {machine.line(info)}",
            f"{'preset':<34} {'rays':>5} {'smp/ray':>7} {'it/s':>7} {'samples/s':>10} "
            f"{'naive smp/s':>11} {'speedup':>7} {'bound smp/s':>11} {'of bound':>8} "
            f"{'compile s':>9} {'peak MB':>8}"]
@@ -224,7 +209,7 @@ def main(argv=None) -> int:
     if value is not None and value < 1:
       raise UserError(f"--{name} {value}: must be positive")
   specs = [s.strip() for s in args.presets.split(",") if s.strip()]
-  info = machine()
+  info = machine.describe(devices=True)
   results = run(specs, args.rays, samples, args.steps, not args.no_naive, args.bound)
   if args.json:
     print(json.dumps({"machine": info, **results}, indent=2))

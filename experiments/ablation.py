@@ -44,7 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py beside this file
 import sweep  # noqa: E402
 
-from ofjax import config, fileio  # noqa: E402
+from ofjax import config, fileio, machine  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 SCENES = ("seed", "circuit", "wing", "sensor", "lenses")
@@ -460,8 +460,7 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
            f"(fingerprint `{settings.get('preset_fingerprint', '-')}`)"
            + ("" if settings["full_budget"] else " - **REDUCED BUDGET: not the issue's full run**")
            + ".", "",
-           f"Machine: {settings['machine']['host']}, {settings['machine']['platform']}, "
-           f"{settings['machine']['cpus']} CPUs (load average at start "
+           f"Machine: {machine.line(settings['machine'])} (load average at start "
            f"{settings['load_average']}); workers {settings['workers']}"
            + (f", Ray at {settings['ray']}" if settings["ray"] else "") + ".", "",
            "Chamfer = mean of accuracy (mesh -> truth) and completeness (truth -> mesh) in um "
@@ -612,7 +611,7 @@ def main(argv=None) -> int:
               "preset_fingerprint": fingerprint,
               "full_budget": args.steps is None and args.resolution == "quick"
               and scenes == list(SCENES) and variants == list(VARIANTS) and poses == list(POSE_SOURCES),
-              "workers": args.workers, "ray": args.ray, "work": str(work), "machine": sweep.machine(),
+              "workers": args.workers, "ray": args.ray, "work": str(work), "machine": machine.describe(),
               "load_average": [round(x, 2) for x in os.getloadavg()], "git": git_start,
               "git_at_end": git_state(),
               "total_wall_s": time.time() - t0}

@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py, ablation.p
 import ablation  # noqa: E402
 import sweep  # noqa: E402
 
-from ofjax import config, fileio  # noqa: E402
+from ofjax import config, fileio, machine  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,16 +134,16 @@ def main(argv=None) -> int:
                                   "progress": not args.quiet and args.workers == 1}))
   records = sweep.run_jobs(jobs, run_variant, workers=args.workers,
                            log=lambda m: print(m, flush=True))
-  machine = sweep.machine()
+  info = machine.describe()
   text = "\n".join([
       "# Preset sweep", "",
       f"`python experiments/preset_sweep.py {' '.join(sys.argv[1:] if argv is None else argv)}`, "
       f"commit `{ablation.git_state()['commit']}`; scene `{scene_dir}`, poses `{poses}`, "
       f"seed {args.seed}.", "",
-      f"Machine: {machine['host']}, {machine['platform']}, {machine['cpus']} CPUs; workers "
+      f"Machine: {machine.line(info)}; workers "
       f"{args.workers} (train s is wall time with the others running).", "",
       table(records), ""])
-  fileio.write_json(args.work / "preset_sweep.json", {"machine": machine, "records": records})
+  fileio.write_json(args.work / "preset_sweep.json", {"machine": info, "records": records})
   fileio.write_text(args.work / "preset_sweep.md", text)
   print(text)
   failed = [r for r in records if "result" not in r]

@@ -32,8 +32,6 @@ import concurrent.futures
 import dataclasses
 import json
 import multiprocessing
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -41,7 +39,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
-from ofjax import fileio
+from ofjax import fileio, machine
 from ofjax.errors import UserError, cli
 
 STDOUT_TAIL_CHARS = 2000  # what a command job keeps of its output in the record
@@ -61,16 +59,10 @@ class Job:
     return f"{self.scene}/{self.variant}/seed{self.seed}"
 
 
-def machine() -> dict[str, Any]:
-  """What the job ran on (recorded per job: on Ray each worker reports its own node)."""
-  return {"host": platform.node(), "platform": platform.platform(), "processor": platform.machine(),
-          "cpus": os.cpu_count(), "python": platform.python_version()}
-
-
 def execute(job: Job, fn: Callable[[Job], dict]) -> dict[str, Any]:
   """Runs one job where it is called (a worker process or a Ray task) and returns its record."""
   record = {"job": dataclasses.asdict(job), "name": job.name, "seed": job.seed,
-            "machine": machine()}
+            "machine": machine.describe()}  # on Ray each worker reports its own node
   t0 = time.time()
   try:
     record["result"] = fn(job)

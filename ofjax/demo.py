@@ -12,14 +12,13 @@ import argparse
 import contextlib
 import io
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ofjax import fileio, plots
+from ofjax import fileio, machine, plots
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 
@@ -101,8 +100,7 @@ def main(argv=None) -> int:
   report = f"""# ofjax demo report
 
 Scene `{args.scene}` (synthetic, quick resolution, seed {args.seed}) in `{scene_dir}`; training run
-in `{run_dir}`. Machine: {platform.machine()} {platform.processor() or ''}, Python
-{platform.python_version()}. Total wall time {total:.0f} s.
+in `{run_dir}`. Machine: {machine.line(machine.describe())}. Total wall time {total:.0f} s.
 
 **Mesh (um, vertex colours):** `{mesh_path}` - open it in MeshLab.
 

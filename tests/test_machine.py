@@ -1,0 +1,39 @@
+"""ofjax.machine: the description every record and report shares."""
+
+import json
+import os
+import platform
+
+from ofjax import machine
+
+
+def test_describe_is_json_and_names_the_cpu():
+  info = machine.describe()
+  assert json.loads(json.dumps(info)) == info
+  assert info["cpus"] == os.cpu_count() and info["python"] == platform.python_version()
+  assert "backend" not in info  # JAX's backend is initialised only when asked for
+  if os.path.exists("/proc/cpuinfo"):
+    with open("/proc/cpuinfo") as f:
+      names = {ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")}
+    if names:
+      assert info["cpu"] in names
+  assert info["cpu"]
+
+
+def test_describe_devices_lists_jax_backend():
+  import jax
+
+  info = machine.describe(devices=True)
+  assert info["backend"] == jax.default_backend()
+  assert info["jax"] == jax.__version__
+  assert len(info["devices"]) == jax.device_count()
+
+
+def test_line_reads_new_and_old_records():
+  info = machine.describe(devices=True)
+  text = machine.line(info)
+  assert info["cpu"] in text and f"{info['cpus']} CPUs" in text and f"JAX {info['jax']}" in text
+  assert info["backend"] in text
+  # A record from before the CPU model and JAX version were kept (experiments/results/*_init/).
+  old = {"host": "vm", "platform": "Linux-6.1", "processor": "x86_64", "cpus": 2, "python": "3.11.7"}
+  assert machine.line(old) == "vm, 2 CPUs, Linux-6.1, Python 3.11.7"
