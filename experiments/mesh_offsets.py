@@ -6,8 +6,17 @@ outside it (along the true surface's normal: above a substrate, off a flank) and
 signed distance, and the median |n_z| of the true faces they are nearest to (1: a level face).
 The accuracy heat maps of ofjax.eval show where a mesh is off; this says which way.
 
+`--cameras SCENE/ground_truth/poses.json` also says whether the data could have removed the far
+vertices outside the truth (those inside it are hidden from every camera by the true surface in
+front of them, which the cameras do see): per such vertex, the number of OM cameras and of WLI scans that see it through free space
+in the true scene (it projects into the image, and the line of sight from the camera - for a WLI
+scan, along its axis from above - meets no true surface before it). A vertex that no camera sees
+through free space lies in space no instrument observed (an undercut, a wedge under an overhang):
+every surface through it is a guess. A WLI scan that sees it may still have a void there (steep
+or specular surface behind it); the OM photos see it in colour whatever the slope.
+
 Names: `v` [N, 3] mesh vertices (um), `signed` [N] distance to the nearest true face along that
-face's outward normal (um).
+face's outward normal (um), `c2w` [4, 4] camera-to-world (OpenCV axes, ofjax/cameras.py).
 """
 
 from __future__ import annotations
@@ -19,8 +28,15 @@ import numpy as np
 import trimesh
 
 from ofjax.meshquery import MeshQuery, load_mesh
+from ofjax.scene import K_from_json, load_poses
 
 MAX_VERTICES = 40_000  # a random subset of each mesh (seed 0): enough for medians and shares
+# A line of sight counts as blocked when it meets the true surface this far (um) before the vertex:
+# above the float32 ray-cast error at the scenes' ~1,000 um distances, below the 1.5 um the far
+# vertices are off by, so the true surface a far vertex hovers over does not block its own view.
+OCCLUSION_TOL_UM = 0.5
+# WLI lines of sight start this far (um) above the vertex along the scan's axis: beyond any sample.
+WLI_STANDOFF_UM = 1.0e4
 
 
 def signed_offsets(gt: trimesh.Trimesh, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -30,13 +46,41 @@ def signed_offsets(gt: trimesh.Trimesh, v: np.ndarray) -> tuple[np.ndarray, np.n
   return signed, np.abs(near["normal"][:, 2])
 
 
+def seen_by(gt: MeshQuery, v: np.ndarray, camera: dict) -> np.ndarray:
+  """[N] bool: which points v [N, 3] (um) `camera` (a poses.json entry) sees through free space."""
+  c2w = np.asarray(camera["c2w"], np.float64)
+  rot, centre = c2w[:3, :3], c2w[:3, 3]
+  local = (v - centre) @ rot  # camera coordinates, [N, 3]
+  w, h = camera["width"], camera["height"]
+  if camera["intrinsics"]["model"] == "orthographic":
+    sx, sy = camera["intrinsics"]["pixel_size"]
+    col, row = local[:, 0] / sx + w / 2, local[:, 1] / sy + h / 2
+    dirs = np.broadcast_to(rot[:, 2], v.shape)
+    origins, dist = v - WLI_STANDOFF_UM * dirs, np.full(len(v), WLI_STANDOFF_UM)
+  else:
+    k = K_from_json(camera["intrinsics"])
+    z = np.where(local[:, 2] > 0, local[:, 2], np.nan)  # behind the camera: not in the image
+    col, row = k[0, 0] * local[:, 0] / z + k[0, 2], k[1, 1] * local[:, 1] / z + k[1, 2]
+    dist = np.linalg.norm(v - centre, axis=-1)
+    dirs = (v - centre) / dist[:, None]
+    origins = np.broadcast_to(centre, v.shape)
+  in_image = (col >= 0) & (col < w) & (row >= 0) & (row < h)  # NaN compares False
+  t, _, _ = gt.cast(origins, dirs)
+  return in_image & (t > dist - OCCLUSION_TOL_UM)
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("gt", type=Path, help="the true surface (e.g. SCENE/ground_truth/mesh.ply)")
   p.add_argument("meshes", type=Path, nargs="+")
   p.add_argument("--beyond", type=float, default=1.5, help="um (default 1.5)")
+  p.add_argument("--cameras", type=Path, default=None,
+                 help="true poses (SCENE/ground_truth/poses.json): count the cameras that see "
+                      "each far vertex through free space")
   args = p.parse_args(argv)
   gt = load_mesh(args.gt)
+  cameras = load_poses(args.cameras)["cameras"] if args.cameras else []
+  gt_query = MeshQuery.of(gt) if cameras else None
   for path in args.meshes:
     v = np.asarray(load_mesh(path).vertices)
     v = v[np.random.default_rng(0).choice(len(v), min(MAX_VERTICES, len(v)), replace=False)]
@@ -49,6 +93,13 @@ def main(argv=None) -> int:
           f"{100 * np.mean(signed[far] > 0):.0f}% of them outside, median {np.median(signed[far]):+.2f}"
           f" um, nearest true faces' |n_z| median {np.median(nz[far]):.2f}; all vertices: median "
           f"{np.median(signed):+.3f} um")
+    outside = signed > args.beyond
+    for modality in ("om", "wli") if cameras and outside.any() else ():
+      views = [seen_by(gt_query, v[outside], c) for c in cameras if c["modality"] == modality]
+      count = np.sum(views, axis=0)
+      print(f"  far vertices outside the truth seen through free space by {modality.upper()} "
+            f"cameras ({len(views)}): {100 * np.mean(count > 0):.1f}% by at least one, median "
+            f"{np.median(count):.0f}")
   return 0
 
 
