@@ -1,19 +1,22 @@
-"""Which side of the true surface a mesh's far vertices lie on.
+"""Which side of the true surface a mesh's far vertices lie on, and whether the data saw them.
 
-`python experiments/mesh_offsets.py GT_MESH MESH [MESH ...] [--beyond 1.5]` prints, per mesh, the
-share of its vertices farther than `--beyond` um from the true surface, how many of those lie
-outside it (along the true surface's normal: above a substrate, off a flank) and their median
-signed distance, and the median |n_z| of the true faces they are nearest to (1: a level face).
-The accuracy heat maps of ofjax.eval show where a mesh is off; this says which way.
+`python experiments/mesh_offsets.py SCENE MESH [MESH ...] [--beyond 1.5] [--cameras]` prints, per
+mesh (in the truth's frame), the share of its vertices in the evaluated region (where ofjax.eval
+judges accuracy, `ofjax.metrics.evaluated_region`) farther than `--beyond` um from the true surface
+(SCENE/ground_truth/mesh.ply), how many of those lie outside it (along the true surface's normal:
+above a substrate, off a flank) and their median signed distance, and the median |n_z| of the true
+faces they are nearest to (1: a level face). The accuracy heat maps of ofjax.eval show where a mesh
+is off; this says which way.
 
-`--cameras SCENE/ground_truth/poses.json` also says whether the data could have removed the far
-vertices outside the truth (those inside it are hidden from every camera by the true surface in
-front of them, which the cameras do see): per such vertex, the number of OM cameras and of WLI scans that see it through free space
-in the true scene (it projects into the image, and the line of sight from the camera - for a WLI
-scan, along its axis from above - meets no true surface before it). A vertex that no camera sees
-through free space lies in space no instrument observed (an undercut, a wedge under an overhang):
-every surface through it is a guess. A WLI scan that sees it may still have a void there (steep
-or specular surface behind it); the OM photos see it in colour whatever the slope.
+`--cameras` also says whether the data could have removed the far vertices outside the truth
+(those inside it are hidden from every camera by the true surface in front of them, which the
+cameras do see): per such vertex, the number of OM cameras and of WLI scans of
+SCENE/ground_truth/poses.json that see it through free space in the true scene (it projects into
+the image, and the line of sight from the camera - for a WLI scan, along its axis from above -
+meets no true surface before it). A vertex that no camera sees through free space lies in space no
+instrument observed (an undercut, a wedge under an overhang): every surface through it is a
+guess. A WLI scan that sees it may still have a void there (a steep or specular surface behind
+it); the OM photos see it in colour whatever the slope.
 
 Names: `v` [N, 3] mesh vertices (um), `signed` [N] distance to the nearest true face along that
 face's outward normal (um), `c2w` [4, 4] camera-to-world (OpenCV axes, ofjax/cameras.py).
@@ -27,6 +30,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ofjax import metrics
+from ofjax.eval import load_ground_truth
 from ofjax.meshquery import MeshQuery, load_mesh
 from ofjax.scene import K_from_json, load_poses
 
@@ -71,18 +76,20 @@ def seen_by(gt: MeshQuery, v: np.ndarray, camera: dict) -> np.ndarray:
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  p.add_argument("gt", type=Path, help="the true surface (e.g. SCENE/ground_truth/mesh.ply)")
-  p.add_argument("meshes", type=Path, nargs="+")
+  p.add_argument("scene", type=Path, help="a synthetic scene (its ground_truth/ is read)")
+  p.add_argument("meshes", type=Path, nargs="+", help="meshes in the truth's frame")
   p.add_argument("--beyond", type=float, default=1.5, help="um (default 1.5)")
-  p.add_argument("--cameras", type=Path, default=None,
-                 help="true poses (SCENE/ground_truth/poses.json): count the cameras that see "
-                      "each far vertex through free space")
+  p.add_argument("--cameras", action="store_true",
+                 help="count the true cameras that see each far vertex outside the truth through "
+                      "free space")
   args = p.parse_args(argv)
-  gt = load_mesh(args.gt)
-  cameras = load_poses(args.cameras)["cameras"] if args.cameras else []
+  truth, _ = load_ground_truth(args.scene)
+  gt = truth.mesh
+  cameras = load_poses(args.scene / "ground_truth" / "poses.json")["cameras"] if args.cameras else []
   gt_query = MeshQuery.of(gt) if cameras else None
   for path in args.meshes:
     v = np.asarray(load_mesh(path).vertices)
+    v = v[metrics.evaluated_region(v, truth.points, metrics.CROP_MARGIN * truth.diagonal)]
     v = v[np.random.default_rng(0).choice(len(v), min(MAX_VERTICES, len(v)), replace=False)]
     signed, nz = signed_offsets(gt, v)
     far = np.abs(signed) > args.beyond
