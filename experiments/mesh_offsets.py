@@ -28,7 +28,6 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from ofjax import metrics
 from ofjax.eval import load_ground_truth
@@ -44,9 +43,9 @@ OCCLUSION_TOL_UM = 0.5
 WLI_STANDOFF_UM = 1.0e4
 
 
-def signed_offsets(gt: trimesh.Trimesh, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def signed_offsets(gt: MeshQuery, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """(signed [N], |n_z| [N]) of points v [N, 3] against the nearest faces of gt."""
-  near = MeshQuery.of(gt).closest(v)
+  near = gt.closest(v)
   signed = np.einsum("ij,ij->i", v - near["points"], near["normal"])
   return signed, np.abs(near["normal"][:, 2])
 
@@ -84,9 +83,8 @@ def main(argv=None) -> int:
                       "free space")
   args = p.parse_args(argv)
   truth, _ = load_ground_truth(args.scene)
-  gt = truth.mesh
+  gt = MeshQuery.of(truth.mesh)  # one ray-casting scene for every mesh and camera
   cameras = load_poses(args.scene / "ground_truth" / "poses.json")["cameras"] if args.cameras else []
-  gt_query = MeshQuery.of(gt) if cameras else None
   for path in args.meshes:
     v = np.asarray(load_mesh(path).vertices)
     v = v[metrics.evaluated_region(v, truth.points, metrics.CROP_MARGIN * truth.diagonal)]
@@ -102,7 +100,7 @@ def main(argv=None) -> int:
           f"{np.median(signed):+.3f} um")
     outside = signed > args.beyond
     for modality in ("om", "wli") if cameras and outside.any() else ():
-      views = [seen_by(gt_query, v[outside], c) for c in cameras if c["modality"] == modality]
+      views = [seen_by(gt, v[outside], c) for c in cameras if c["modality"] == modality]
       count = np.sum(views, axis=0)
       print(f"  far vertices outside the truth seen through free space by {modality.upper()} "
             f"cameras ({len(views)}): {100 * np.mean(count > 0):.1f}% by at least one, median "

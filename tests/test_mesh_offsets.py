@@ -10,6 +10,8 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 import mesh_offsets  # noqa: E402
 
+from ofjax.meshquery import MeshQuery  # noqa: E402
+
 
 def test_points_above_a_plane_and_beside_a_box_get_their_signed_distances():
   plane = trimesh.Trimesh([[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]],
@@ -17,23 +19,28 @@ def test_points_above_a_plane_and_beside_a_box_get_their_signed_distances():
   rng = np.random.default_rng(1)
   xy = rng.uniform(-5, 5, (50, 2))
   z = rng.uniform(-3, 3, 50)
-  signed, nz = mesh_offsets.signed_offsets(plane, np.column_stack([xy, z]))
+  signed, nz = mesh_offsets.signed_offsets(MeshQuery.of(plane), np.column_stack([xy, z]))
   np.testing.assert_allclose(signed, z, atol=1e-5)
   np.testing.assert_allclose(nz, 1.0, atol=1e-6)
   box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))  # outward normals
   pts = np.array([[1.7, 0.1, 0.2], [0.2, -0.3, 0.5], [0.0, 0.0, -1.4]])
-  signed, nz = mesh_offsets.signed_offsets(box, pts)
+  signed, nz = mesh_offsets.signed_offsets(MeshQuery.of(box), pts)
   np.testing.assert_allclose(signed, [0.7, -0.5, 0.4], atol=1e-5)
   np.testing.assert_allclose(nz, [0.0, 1.0, 1.0], atol=1e-6)
 
 
-def test_seen_by_counts_lines_of_sight_blocked_by_a_roof():
-  """A floor at z = 0 and a roof at z = 10 over |x|, |y| <= 5; cameras above, looking down."""
+def _floor_and_roof() -> trimesh.Trimesh:
+  """A floor at z = 0 and a roof at z = 10 over |x|, |y| <= 5, both facing up."""
   floor = trimesh.Trimesh([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]],
                           [[0, 1, 2], [0, 2, 3]])
   roof = trimesh.Trimesh([[-5, -5, 10], [5, -5, 10], [5, 5, 10], [-5, 5, 10]],
                          [[0, 1, 2], [0, 2, 3]])
-  gt = mesh_offsets.MeshQuery.of(trimesh.util.concatenate([floor, roof]))
+  return trimesh.util.concatenate([floor, roof])
+
+
+def test_seen_by_counts_lines_of_sight_blocked_by_a_roof():
+  """The floor and roof; cameras above, looking down."""
+  gt = MeshQuery.of(_floor_and_roof())
   down = np.diag([1.0, -1.0, -1.0])  # OpenCV axes: z forward = -z of the world
   c2w = np.eye(4)
   c2w[:3, :3], c2w[:3, 3] = down, [0.0, 0.0, 100.0]
@@ -64,11 +71,7 @@ def _roof_scene(tmp_path):
   floor over [-20, 20]^2, one OM camera and one WLI scan 100 um above, looking down."""
   gt_dir = tmp_path / "scene" / "ground_truth"
   gt_dir.mkdir(parents=True)
-  floor = trimesh.Trimesh([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]],
-                          [[0, 1, 2], [0, 2, 3]])
-  roof = trimesh.Trimesh([[-5, -5, 10], [5, -5, 10], [5, 5, 10], [-5, 5, 10]],
-                         [[0, 1, 2], [0, 2, 3]])
-  trimesh.util.concatenate([floor, roof]).export(gt_dir / "mesh.ply")
+  _floor_and_roof().export(gt_dir / "mesh.ply")
   g = np.linspace(-20, 20, 21)
   pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
   trimesh.PointCloud(np.column_stack([pts, np.zeros(len(pts))])).export(gt_dir / "surface_points.ply")
