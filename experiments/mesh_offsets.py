@@ -32,7 +32,7 @@ import numpy as np
 from ofjax import metrics
 from ofjax.eval import load_ground_truth
 from ofjax.meshquery import MeshQuery, load_mesh
-from ofjax.scene import K_from_json, load_poses
+from ofjax.scene import K_from_json, load_poses, project_pinhole
 
 MAX_VERTICES = 40_000  # a random subset of each mesh (seed 0): enough for medians and shares
 # A line of sight counts as blocked when it meets the true surface this far (um) before the vertex:
@@ -53,24 +53,19 @@ def signed_offsets(gt: MeshQuery, v: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def seen_by(gt: MeshQuery, v: np.ndarray, camera: dict) -> np.ndarray:
   """[N] bool: which points v [N, 3] (um) `camera` (a poses.json entry) sees through free space."""
   c2w = np.asarray(camera["c2w"], np.float64)
-  rot, centre = c2w[:3, :3], c2w[:3, 3]
-  local = (v - centre) @ rot  # camera coordinates, [N, 3]
-  w, h = camera["width"], camera["height"]
   if camera["intrinsics"]["model"] == "orthographic":
+    rot = c2w[:3, :3]
+    local = (v - c2w[:3, 3]) @ rot  # camera coordinates, [N, 3]
     sx, sy = camera["intrinsics"]["pixel_size"]
-    col, row = local[:, 0] / sx + w / 2, local[:, 1] / sy + h / 2
-    dirs = np.broadcast_to(rot[:, 2], v.shape)
-    origins, dist = v - WLI_STANDOFF_UM * dirs, np.full(len(v), WLI_STANDOFF_UM)
+    col = local[:, 0] / sx + camera["width"] / 2
+    row = local[:, 1] / sy + camera["height"] / 2
+    inside = (col >= 0) & (col < camera["width"]) & (row >= 0) & (row < camera["height"])
+    origins = v - WLI_STANDOFF_UM * rot[:, 2]
   else:
-    k = K_from_json(camera["intrinsics"])
-    z = np.where(local[:, 2] > 0, local[:, 2], np.nan)  # behind the camera: not in the image
-    col, row = k[0, 0] * local[:, 0] / z + k[0, 2], k[1, 1] * local[:, 1] / z + k[1, 2]
-    dist = np.linalg.norm(v - centre, axis=-1)
-    dirs = (v - centre) / dist[:, None]
-    origins = np.broadcast_to(centre, v.shape)
-  in_image = (col >= 0) & (col < w) & (row >= 0) & (row < h)  # NaN compares False
-  t, _, _ = gt.cast(origins, dirs)
-  return in_image & (t > dist - OCCLUSION_TOL_UM)
+    _, _, inside = project_pinhole(v, K_from_json(camera["intrinsics"]), c2w,
+                                   (camera["height"], camera["width"]))
+    origins = c2w[:3, 3]
+  return inside & gt.clear(origins, v, abs_slack=OCCLUSION_TOL_UM)
 
 
 def main(argv=None) -> int:

@@ -115,21 +115,12 @@ def project_colours(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
   for photo in photos:
     centre = photo.c2w[:3, 3]
     to_cam = centre - vertices
-    dist = np.linalg.norm(to_cam, axis=-1)
-    cos = np.sum(normals * to_cam, -1) / dist
-    w2c = np.linalg.inv(photo.c2w)
-    cam = vertices @ w2c[:3, :3].T + w2c[:3, 3]
-    h, w = photo.shape
-    with np.errstate(divide="ignore", invalid="ignore"):
-      uvw = cam @ photo.K.T
-      u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
-    cand = np.flatnonzero((cos > best) & (cam[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0)
-                          & (v < h))
+    cos = np.sum(normals * to_cam, -1) / np.linalg.norm(to_cam, axis=-1)
+    u, v, inside = scn.project_pinhole(vertices, photo.K, photo.c2w, photo.shape)
+    cand = np.flatnonzero((cos > best) & inside)
     if len(cand) == 0:
       continue
-    t, _, _ = query.cast(np.broadcast_to(centre, (len(cand), 3)),
-                      -to_cam[cand] / dist[cand, None])
-    cand = cand[t >= dist[cand] - tol]
+    cand = cand[query.clear(centre, vertices[cand], abs_slack=tol)]
     # Pixel (col c, row r) has its centre at (c + 0.5, r + 0.5): array index = coordinate - 0.5.
     coords = np.stack([v[cand] - 0.5, u[cand] - 0.5])
     colours[cand] = np.stack([ndimage.map_coordinates(photo.image[..., c], coords, order=1,

@@ -58,11 +58,13 @@ def barycentric(uv: np.ndarray) -> np.ndarray:
 class MeshQuery:
   """Ray casts and closest points on one triangle mesh (um)."""
 
-  def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-    """vertices: [V, 3] um; faces: [F, 3] vertex indices."""
+  def __init__(self, vertices: np.ndarray, faces: np.ndarray, shift: np.ndarray | None = None):
+    """vertices: [V, 3] um; faces: [F, 3] vertex indices; shift: [3] um subtracted from every
+    coordinate before the float32 casts, the bounding-box centre when None."""
     vertices = np.asarray(vertices, np.float64)
     self.faces = np.asarray(faces, np.int64)
-    self.shift = (vertices.min(0) + vertices.max(0)) / 2
+    self.shift = (vertices.min(0) + vertices.max(0)) / 2 if shift is None else np.asarray(
+        shift, np.float64)
     self.scene = o3d.t.geometry.RaycastingScene()
     self.scene.add_triangles(o3d.core.Tensor((vertices - self.shift).astype(np.float32)),
                              o3d.core.Tensor(self.faces.astype(np.uint32)))
@@ -110,6 +112,23 @@ class MeshQuery:
             "face": r["primitive_ids"].numpy().astype(np.int64),
             "bary": barycentric(r["primitive_uvs"].numpy()),
             "normal": r["primitive_normals"].numpy().astype(np.float64)}
+
+  def clear(self, origins: np.ndarray, points: np.ndarray, rel_slack: float = 0.0,
+            abs_slack: float = 0.0) -> np.ndarray:
+    """[N] bool: nothing of the mesh lies between each origin and its point (a line of sight).
+
+    The ray from the origin towards the point may meet the mesh first at distance t; the sight is
+    clear when t >= dist * (1 - rel_slack) - abs_slack, dist = |point - origin| (the slacks let a
+    point on the mesh see past its own face despite float32 ray casts), and when it meets nothing.
+
+    Args:
+      origins: [N, 3] or [3] um, e.g. a camera centre.
+      points: [N, 3] um.
+    """
+    ray = np.asarray(points, np.float64) - origins
+    dist = np.linalg.norm(ray, axis=-1)
+    t, _, _ = self.cast(np.broadcast_to(origins, ray.shape), ray / dist[:, None])
+    return t >= dist * (1 - rel_slack) - abs_slack
 
   def interpolate(self, values: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """[N, C] per-vertex `values` [V, C] interpolated at points given by `face` [N], `bary` [N, 3]."""

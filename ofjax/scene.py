@@ -151,6 +151,30 @@ def om_rays(image: OMImage, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
   return o, d
 
 
+def project_pinhole(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, shape: tuple[int, int]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Where points land in a pinhole (OM) photo.
+
+  Args:
+    points: [N, 3] um.
+    K: [3, 3] intrinsics (pixel centres at +0.5, as `om_rays`).
+    c2w: [4, 4] camera-to-world.
+    shape: (H, W) of the photo.
+  Returns:
+    u, v: [N] column and row coordinates (pixel (c, r) spans [c, c + 1) x [r, r + 1)); NaN or inf
+      for points in the camera's plane.
+    inside: [N] bool, in front of the camera and inside the frame.
+  """
+  w2c = np.linalg.inv(c2w)
+  cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+  uvw = cam @ K.T
+  with np.errstate(divide="ignore", invalid="ignore"):
+    u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+  h, w = shape
+  inside = (cam[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)  # NaN compares False
+  return u, v, inside
+
+
 def compute_normalization(scene: Scene, margin: float = 0.05) -> Normalization:
   """The similarity that maps the posed WLI points' bounding box, grown by `margin`, into [-1, 1]^3."""
   pts = scene.wli_points(stride=4)

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from ofjax import fileio
 from ofjax import scene as scn
 from ofjax.errors import UserError, cli
+from ofjax.meshquery import MeshQuery
 from ofjax.synth_scenes import SCENES, Material, Sample, Solid
 
 NA = 0.13  # numerical aperture of the WLI objective in the paper's experiments
@@ -148,11 +149,11 @@ class SynthMesh:
       vuv[self.faces[:, corner]] = uv
     return self.albedo(self.vertices, vface, vuv)
 
-  def raycaster(self) -> o3d.t.geometry.RaycastingScene:
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                     o3d.core.Tensor(self.faces.astype(np.uint32)))
-    return rc
+  def query(self) -> MeshQuery:
+    """Ray casts on this mesh, unshifted: the samples are built around the world origin already
+    (float32 resolves ~1e-4 um at their ~1,000 um extent), and the scenes stay as rendered
+    before `MeshQuery` took over the casts."""
+    return MeshQuery(self.vertices, self.faces, shift=np.zeros(3))
 
 
 def graded_axis(half: float, spacing: float, outer: float) -> tuple[np.ndarray, int]:
@@ -270,24 +271,24 @@ def make_rig(sample: Sample, res: Resolution) -> tuple[list[scn.WLIScan], list[s
 # --------------------------------------------------------------------------------- rendering
 
 
-def cast(rc: o3d.t.geometry.RaycastingScene, o: np.ndarray, d: np.ndarray):
-  """Casts rays (origins, unit directions [..., 3], um); returns t [...], face ids, uvs [..., 2]."""
-  shape = o.shape[:-1]
-  rays = np.concatenate([np.broadcast_to(o, d.shape), d], -1).reshape(-1, 6).astype(np.float32)
-  hit = rc.cast_rays(o3d.core.Tensor(rays))
-  t = hit["t_hit"].numpy().astype(np.float64)
-  ids = hit["primitive_ids"].numpy().astype(np.int64)
-  ok = np.isfinite(t)
-  ids[~ok] = 0
-  return t.reshape(shape), ids.reshape(shape), hit["primitive_uvs"].numpy().astype(
-      np.float64).reshape(shape + (2,)), ok.reshape(shape)
+def cast(query: MeshQuery, o: np.ndarray, d: np.ndarray
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """First hits of rays (origins, unit directions [..., 3], um).
+
+  Returns t [...] um, face ids [...] (any face where the ray misses), uvs [..., 2] (the weights of
+  the face's second and third vertices, as `SynthMesh.interpolate`) and hit [...] bool.
+  """
+  shape = d.shape[:-1]
+  t, ids, bary = query.cast(np.broadcast_to(o, d.shape).reshape(-1, 3), d.reshape(-1, 3))
+  return t.reshape(shape), ids.reshape(shape), bary[:, 1:].reshape(shape + (2,)), np.isfinite(
+      t).reshape(shape)
 
 
-def render_wli(mesh: SynthMesh, rc, scan: scn.WLIScan, rng: np.random.Generator,
+def render_wli(mesh: SynthMesh, query: MeshQuery, scan: scn.WLIScan, rng: np.random.Generator,
                na: float = NA) -> np.ndarray:
   """[H, W] float32 depth (um) of `scan` with voids drawn from the paper's model."""
   o, d = scn.wli_rays(scan)
-  t, ids, uvs, ok = cast(rc, o, d)
+  t, ids, uvs, ok = cast(query, o, d)
   n = mesh.normals(ids.ravel(), uvs.reshape(-1, 2)).reshape(d.shape)
   # |cos|: the instrument sees a surface from either side (user meshes may have flipped faces)
   alpha = np.degrees(np.arccos(np.clip(np.abs((n * d).sum(-1)), 0.0, 1.0)))
@@ -296,10 +297,10 @@ def render_wli(mesh: SynthMesh, rc, scan: scn.WLIScan, rng: np.random.Generator,
   return np.where(keep, t, np.nan).astype(np.float32)
 
 
-def render_om(mesh: SynthMesh, rc, photo: scn.OMImage) -> np.ndarray:
+def render_om(mesh: SynthMesh, query: MeshQuery, photo: scn.OMImage) -> np.ndarray:
   """[H, W, 3] float32 RGB in [0, 1]: albedo under a light beside the objective + highlights."""
   o, d = scn.om_rays(photo)
-  t, ids, uvs, ok = cast(rc, o, d)
+  t, ids, uvs, ok = cast(query, o, d)
   o, d, t, ids, uvs = o[ok], d[ok], t[ok], ids[ok], uvs[ok]
   p = o + t[:, None] * d
   n = mesh.normals(ids, uvs)
@@ -322,26 +323,15 @@ def render_om(mesh: SynthMesh, rc, photo: scn.OMImage) -> np.ndarray:
   return img
 
 
-def visible_points(mesh: SynthMesh, rc, points: np.ndarray, photos: list[scn.OMImage],
-                   ) -> np.ndarray:
+def visible_points(query: MeshQuery, points: np.ndarray, photos: list[scn.OMImage]) -> np.ndarray:
   """[N] bool: the point (um, on the surface) is inside some photo and not occluded there."""
   seen = np.zeros(len(points), bool)
   for photo in photos:
     todo = np.flatnonzero(~seen)
     if len(todo) == 0:
       break
-    w2c = np.linalg.inv(photo.c2w)
-    cam = points[todo] @ w2c[:3, :3].T + w2c[:3, 3]
-    uvw = cam @ photo.K.T
-    h, w = photo.shape
-    with np.errstate(divide="ignore", invalid="ignore"):
-      u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
-    inside = (cam[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    todo = todo[inside]
-    ray = points[todo] - photo.c2w[:3, 3]
-    dist = np.linalg.norm(ray, axis=-1)
-    t, _, _, ok = cast(rc, np.broadcast_to(photo.c2w[:3, 3], ray.shape), ray / dist[:, None])
-    seen[todo[ok & (t >= dist * (1 - VISIBLE_EPS))]] = True
+    todo = todo[scn.project_pinhole(points[todo], photo.K, photo.c2w, photo.shape)[2]]
+    seen[todo[query.clear(photo.c2w[:3, 3], points[todo], rel_slack=VISIBLE_EPS)]] = True
   return seen
 
 
@@ -374,13 +364,13 @@ def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
 
   wli, om, substrate_half = make_rig(sample, res)
   mesh = build_mesh(sample, substrate_half)
-  rc = mesh.raycaster()
+  query = mesh.query()
   lap("mesh")
   for k, scan in enumerate(wli):
-    scan.depth = render_wli(mesh, rc, scan, np.random.default_rng([seed, 100, k]))
+    scan.depth = render_wli(mesh, query, scan, np.random.default_rng([seed, 100, k]))
   lap("wli")
   for photo in om:
-    photo.image = render_om(mesh, rc, photo)
+    photo.image = render_om(mesh, query, photo)
   lap("om")
   # Ground-truth points: the surface over the WLI field, where some photo sees it.
   region = wli[0].pixel_size[0] * wli[0].shape[1] / 2
@@ -390,7 +380,7 @@ def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
   pts, fids = trimesh.sample.sample_surface(tm, res.points, face_weight=weight, seed=seed)
   bary = trimesh.triangles.points_to_barycentric(tm.triangles[fids], pts)
   uvs = bary[:, 1:]
-  keep = visible_points(mesh, rc, pts, om)
+  keep = visible_points(query, pts, om)
   pts, fids, uvs = pts[keep], fids[keep], uvs[keep]
   albedo = mesh.albedo(pts, fids, uvs)
   normals = mesh.normals(fids, uvs)

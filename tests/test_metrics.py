@@ -239,18 +239,3 @@ def test_eval_cli_user_errors(tmp_path, capsys, args):
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and err.startswith("ofjax: error:")
   assert not (tmp_path / "pred_eval.json").exists()
-
-
-def test_ray_hits_interpolate_vertex_colours():
-  from ofjax.meshquery import MeshQuery, vertex_rgb
-  mesh = plate(0.0)
-  rng = np.random.default_rng(7)
-  xy = rng.uniform(0.0, SIZE, size=(500, 2))
-  q = MeshQuery.of(mesh)
-  t, face, bary = q.cast(np.concatenate([xy, np.full((500, 1), 5.0)], -1),
-                         np.tile([0.0, 0.0, -1.0], (500, 1)))
-  np.testing.assert_allclose(t, 5.0, atol=1e-5)
-  hit = np.concatenate([xy, np.zeros((500, 1))], -1)
-  # 8-bit vertex colours of a linear albedo: interpolation is within 0.5/255 of it.
-  np.testing.assert_allclose(q.interpolate(vertex_rgb(mesh), face, bary), albedo(hit),
-                             atol=0.5 / 255 + 1e-6)

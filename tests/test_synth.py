@@ -70,7 +70,7 @@ def test_tilted_plane_valid_fraction_follows_the_void_model(beta):
     quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * 400 @ rot.T
     mesh = synth.SynthMesh(quad, np.array([[0, 1, 2], [0, 2, 3]]), np.zeros(2, int),
                            np.zeros(2, int), [mat], np.zeros((4, 3)))
-    depth = synth.render_wli(mesh, mesh.raycaster(), scan, np.random.default_rng([7, k]))
+    depth = synth.render_wli(mesh, mesh.query(), scan, np.random.default_rng([7, k]))
     assert np.mean(np.isfinite(depth)) == pytest.approx(paper_p_valid(alpha, beta), abs=tol), alpha
 
 
