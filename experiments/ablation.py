@@ -44,7 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep.py beside this file
 import sweep  # noqa: E402
 
-from ofjax import config, fileio, machine  # noqa: E402
+from ofjax import config, export, fileio, machine  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 SCENES = ("seed", "circuit", "wing", "sensor", "lenses")
@@ -162,24 +162,32 @@ def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
   m = load_mesh(mesh)
   plots.mesh_preview(run_dir / "preview.png", np.asarray(m.vertices), np.asarray(m.faces),
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
+  extracted = {} if job.variant == "conventional" else {"export_refine_steps": export.REFINE_STEPS}
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
-          "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job)}
+          "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job), **extracted}
 
 
 def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
   """Re-runs the evaluation of finished runs that were evaluated with other arguments than
-  eval_args gives now (records older than --poses count as none); the reconstruction is kept,
-  the record says which commit evaluated it."""
+  eval_args gives now (records older than --poses count as none), after exporting a neural run's
+  mesh again from its last checkpoint when the export's vertex refinement differs from this code's
+  (records older than it count as 0 steps); the training is kept, the record says which commit
+  re-exported and evaluated it."""
   by_result = {j.result: j for j in jobs}
   for r in records:
     res = r.get("result")
     if not res or res.get("eval") is None or "job" not in r:
       continue
     job = by_result[r["job"]["result"]]
-    if res.get("eval_args", []) == eval_args(job):
+    stale_mesh = (job.variant != "conventional"
+                  and res.get("export_refine_steps", 0) != export.REFINE_STEPS)
+    if res.get("eval_args", []) == eval_args(job) and not stale_mesh:
       continue
-    log(f"ablation: re-evaluating {r['name']} with {' '.join(eval_args(job))}")
-    stages = {k: v for k, v in res["stages_s"].items() if k != "eval"}
+    stages = {k: v for k, v in res["stages_s"].items() if k not in ("eval", "export")}
+    if stale_mesh:
+      log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps)")
+      _, stages["export"] = run_cli("export", res["run_dir"])
+    log(f"ablation: re-evaluating {r['name']} {' '.join(eval_args(job))}")
     new = _evaluated(job, stages, res.get("git"))
     r["result"] = {**new, "eval_git": git_state()}
     fileio.write_json(job.result, {k: v for k, v in r.items() if k != "skipped"})
@@ -510,7 +518,8 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
     lines.append(f"| {j['params'].get('poses_source', '-')} | {j['scene']} | {j['variant']} | "
                  f"{j['seed']} | {r['wall_s']:.0f} | {st} | {r['machine']['host']} | "
                  f"{(r['result'].get('git') or {}).get('commit', '-')[:10]}"
-                 + (f" (re-evaluated at {r['result']['eval_git']['commit'][:10]})"
+                 + (f" ({'re-exported and ' if 'export' in r['result']['stages_s'] else ''}"
+                    f"re-evaluated at {r['result']['eval_git']['commit'][:10]})"
                     if "eval_git" in r["result"] else "") + " |")
   return "\n".join(lines) + "\n"
 

@@ -1,9 +1,11 @@
 """Mesh export: marching cubes of the SDF, vertex colours from the global colour network, in um.
 
-`python -m ofjax.export RUN_DIR [--resolution N] [--format ply|obj|glb] [--out FILE]`
+`python -m ofjax.export RUN_DIR [--resolution N] [--refine-steps K] [--format ply|obj|glb] [--out FILE]`
 
 The SDF is evaluated in chunks on a grid over the observed region (the WLI points' box, stored in
-the run's config.json), the zero level set is extracted with scikit-image, floating components
+the run's config.json), the zero level set is extracted with scikit-image, every vertex is moved
+along its grid edge from the linear interpolation to the SDF's own zero (K bisection steps, default
+REFINE_STEPS; 0 keeps marching cubes' interpolation), floating components
 smaller than `min_component` of the largest are dropped, vertex colours come from G(x, n, f) only
 (paper Sec. 3.3.2: no view-dependent highlights), and coordinates are mapped back to micrometres.
 """
@@ -29,6 +31,11 @@ from ofjax.errors import UserError, cli
 from ofjax.meshfile import FORMATS, write_mesh
 
 CHUNK = 1 << 16  # points per device call: bounded memory on a laptop
+# Bisection steps per vertex: the zero is bracketed to 1/64 of a cell before the last linear
+# interpolation. The fused SDF bends across a cpu-preset cell (~2.6 um): on `lenses` (4,800 steps)
+# linear interpolation set its level faces 0.18 um low, 6 steps put them at +0.01 um, as a 1,024
+# grid did (experiments/README.md); each step costs one SDF evaluation per vertex.
+REFINE_STEPS = 6
 
 
 def evaluate_chunked(fn: Callable, x: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
@@ -49,9 +56,13 @@ def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
   return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
 
 
-def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int) -> trimesh.Trimesh:
+def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int = REFINE_STEPS
+                   ) -> trimesh.Trimesh:
   """Zero level set of sdf_fn (positive outside) on a grid over [lo, hi]; faces point outside.
 
+  refine_steps: bisection steps that move every vertex from the linear interpolation between its
+    grid edge's two nodes to the SDF's own zero on that edge (`refine_on_edges`); 0 keeps the
+    linear interpolation.
   Returns a mesh in the coordinates of sdf_fn (empty when the SDF has no sign change there).
   """
   lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
@@ -61,11 +72,66 @@ def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int) -> trimesh.Trimesh
   vol = evaluate_chunked(sdf_fn, pts).reshape(shape)
   if not (vol.min() < 0 < vol.max()):
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
-  spacing = tuple((hi - lo) / (np.asarray(shape) - 1))
-  verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=spacing)
+  spacing = (hi - lo) / (np.asarray(shape) - 1)
+  verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=tuple(spacing))
+  verts = np.asarray(verts, np.float64)
+  if refine_steps:
+    verts = refine_on_edges(sdf_fn, vol, verts, spacing, lo, refine_steps)
   # scikit-image orients faces towards increasing values; the SDF grows outwards, so this is
   # already outward. (Checked by tests/test_export.py on a sphere.)
   return trimesh.Trimesh(verts + lo, faces, process=False)
+
+
+# A marching-cubes vertex sits on a grid edge: two of its grid coordinates are whole numbers (up to
+# scikit-image's float32 arithmetic, ~1e-5 cells at these grid sizes). One closer than this to a
+# node in all three coordinates is left where it is.
+EDGE_TOL = 1e-3  # cells
+
+
+def refine_on_edges(sdf_fn: Callable, vol: np.ndarray, verts: np.ndarray, spacing: np.ndarray,
+                    lo: np.ndarray, steps: int) -> np.ndarray:
+  """Marching-cubes vertices moved to the SDF's zero along their grid edges.
+
+  Marching cubes places a vertex by linear interpolation between the two nodes of the edge whose
+  signs differ. A trained SDF is not linear over a cell (near the surface its slope varies), so on
+  coarse grids that places whole faces a fraction of a cell off the zero level set; bisection on
+  the edge, bracketed by the two nodes, then a final linear interpolation inside the last bracket,
+  finds the zero itself (to 2^-steps of a cell before that interpolation).
+
+  Args:
+    sdf_fn: [N, 3] -> [N], the function `vol` was sampled from.
+    vol: [X, Y, Z] the SDF on the grid nodes lo + index * spacing.
+    verts: [V, 3] vertices relative to lo (scikit-image's output with `spacing`).
+    spacing: [3] node spacing; lo: [3] the grid's first node.
+  Returns:
+    [V, 3] refined vertices relative to lo; each stays on its edge.
+  """
+  g = verts / spacing  # grid coordinates
+  frac = np.abs(g - np.round(g))
+  axis = np.argmax(frac, 1)
+  rows = np.flatnonzero(frac[np.arange(len(g)), axis] > EDGE_TOL)
+  a = np.round(g[rows]).astype(np.int64)
+  a[np.arange(len(rows)), axis[rows]] = np.floor(g[rows, axis[rows]]).astype(np.int64)
+  b = a.copy()
+  b[np.arange(len(rows)), axis[rows]] += 1
+  f_lo, f_hi = vol[tuple(a.T)].astype(np.float64), vol[tuple(b.T)].astype(np.float64)
+  bracketed = f_lo * f_hi < 0
+  rows, a, f_lo, f_hi = rows[bracketed], a[bracketed], f_lo[bracketed], f_hi[bracketed]
+  p0 = lo + a * spacing  # the edge's first node; the edge runs along `step`
+  step = np.zeros_like(p0)
+  step[np.arange(len(rows)), axis[rows]] = spacing[axis[rows]]
+  t_lo, t_hi = np.zeros(len(rows)), np.ones(len(rows))
+  for _ in range(steps):
+    t = (t_lo + t_hi) / 2
+    f = evaluate_chunked(sdf_fn, p0 + t[:, None] * step).astype(np.float64)
+    low_side = np.sign(f) == np.sign(f_lo)
+    t_lo, f_lo = np.where(low_side, t, t_lo), np.where(low_side, f, f_lo)
+    t_hi, f_hi = np.where(low_side, t_hi, t), np.where(low_side, f_hi, f)
+  # f_lo and f_hi still differ in sign (a zero f ends on the high side: f_hi = 0, t = t_hi).
+  t = t_lo + (t_hi - t_lo) * f_lo / (f_lo - f_hi)
+  out = verts.copy()
+  out[rows] = p0 - lo + t[:, None] * step
+  return out
 
 
 def drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
@@ -82,12 +148,15 @@ def drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh
 
 
 def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,
-                 norm: scene_lib.Normalization, min_component: float = 0.05) -> trimesh.Trimesh:
+                 norm: scene_lib.Normalization, min_component: float = 0.05,
+                 refine_steps: int = REFINE_STEPS) -> trimesh.Trimesh:
   """Zero level set of sdf_fn over [lo, hi] (normalised), coloured by color_fn, mapped to um.
 
   sdf_fn: [N, 3] -> [N]; color_fn: [N, 3] -> [N, 3] in [0, 1]; both on normalised points.
+  refine_steps: see `marching_cubes`.
   """
-  mesh = drop_small_components(marching_cubes(sdf_fn, lo, hi, resolution), min_component)
+  mesh = drop_small_components(marching_cubes(sdf_fn, lo, hi, resolution, refine_steps),
+                               min_component)
   if len(mesh.vertices):
     rgb = evaluate_chunked(color_fn, np.asarray(mesh.vertices))
     mesh.visual.vertex_colors = np.concatenate(
@@ -97,22 +166,23 @@ def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,
 
 
 def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolution: int,
-                 min_component: float = 0.05) -> trimesh.Trimesh:
+                 min_component: float = 0.05, refine_steps: int = REFINE_STEPS
+                 ) -> trimesh.Trimesh:
   """The trained SDF's surface in um with vertex colours from the global colour network."""
   # params are an argument of the jitted functions, not a closed-over constant, so XLA neither
   # embeds nor constant-folds the tables.
   sdf_jit = jax.jit(fields.sdf_value, static_argnums=2)
   color_jit = jax.jit(fields.global_color, static_argnums=2)
   return surface_mesh(lambda x: sdf_jit(params, x, cfg), lambda x: color_jit(params, x, cfg),
-                      box[0], box[1], resolution, norm, min_component)
+                      box[0], box[1], resolution, norm, min_component, refine_steps)
 
 
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
-               units: str = "um") -> Path:
+               units: str = "um", refine_steps: int = REFINE_STEPS) -> Path:
   """Extracts and writes the mesh; refuses non-finite parameters (a diverged run)."""
   if not all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree_util.tree_leaves(params)):
     raise UserError(f"{path}: the parameters are not finite (the run diverged); no mesh written")
-  mesh = extract_mesh(params, cfg, norm, box, resolution)
+  mesh = extract_mesh(params, cfg, norm, box, resolution, refine_steps=refine_steps)
   if len(mesh.faces) == 0:
     raise UserError(f"{path}: the SDF has no zero crossing in the observed region; train longer "
                     "or check the data")
@@ -141,6 +211,9 @@ def main(argv=None) -> int:
                               description="Export the mesh (um, vertex colours) of a training run.")
   p.add_argument("run_dir", help="run directory written by python -m ofjax.train")
   p.add_argument("--resolution", type=int, help="grid cells along the longest side")
+  p.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
+                 help="bisection steps that move each vertex to the SDF's zero along its grid edge "
+                      f"(default {REFINE_STEPS}; 0: marching cubes' linear interpolation)")
   p.add_argument("--format", default="ply", choices=FORMATS)
   p.add_argument("--out", help="output file (default: RUN_DIR/mesh.<format>)")
   args = p.parse_args(argv)
@@ -149,8 +222,10 @@ def main(argv=None) -> int:
   res = args.resolution or cfg.train.mesh_resolution
   if res < 8:
     raise UserError(f"--resolution {res}: use at least 8 cells")
+  if args.refine_steps < 0:
+    raise UserError(f"--refine-steps {args.refine_steps}: use 0 or more")
   out = Path(args.out) if args.out else run_dir / f"mesh.{args.format}"
-  path = export_run(params, cfg, norm, box, out, res, units)
+  path = export_run(params, cfg, norm, box, out, res, units, args.refine_steps)
   print(f"ofjax: mesh written to {path}")
   return 0
 

@@ -34,26 +34,37 @@ def _finished(job: sweep.Job, **result) -> dict:
 
 def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, monkeypatch):
   """An associated run evaluated before --poses is re-evaluated (its training kept, both commits
-  recorded, its record file rewritten); true-pose runs and up-to-date ones are left alone."""
-  calls = []
+  recorded, its record file rewritten); a neural run whose mesh was extracted with another vertex
+  refinement is exported again first; true-pose runs and up-to-date ones are left alone."""
+  calls, exported = [], []
 
   def fake_evaluated(job, stages, git):
     calls.append(job.name)
     return {"eval": {"chamfer_um": 1.0}, "stages_s": {**stages, "eval": 2.0},
-            "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job)}
+            "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job),
+            "export_refine_steps": ablation.export.REFINE_STEPS}
+
+  def fake_cli(module, *args):
+    exported.append((module, args))
+    return "", 3.0
 
   monkeypatch.setattr(ablation, "_evaluated", fake_evaluated)
-  old, true, current = (_job(tmp_path, "associate"), _job(tmp_path, "true"),
-                        _job(tmp_path, "associate", "wli"))
-  records = [_finished(old), _finished(true),
-             _finished(current, eval_args=ablation.eval_args(current)),
+  monkeypatch.setattr(ablation, "run_cli", fake_cli)
+  old, true, current, stale = (_job(tmp_path, "associate"), _job(tmp_path, "true"),
+                               _job(tmp_path, "associate", "wli"), _job(tmp_path, "true", "om"))
+  now = {"export_refine_steps": ablation.export.REFINE_STEPS}
+  records = [_finished(old, **now), _finished(true, eval_args=[], **now),
+             _finished(current, eval_args=ablation.eval_args(current), **now),
+             _finished(stale, eval_args=[]),  # exported before the refinement: 0 steps
              {"job": {"result": "x"}, "name": "failed", "error": "boom"}]
-  out = ablation.reevaluate(records, [old, true, current], log=lambda m: None)
-  assert calls == [old.name]
+  out = ablation.reevaluate(records, [old, true, current, stale], log=lambda m: None)
+  assert calls == [old.name, stale.name]
+  assert exported == [("export", (stale.params["run_dir"],))]
   assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
   assert ablation.eval_args(true) == []
   assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
   assert out[0]["result"]["stages_s"] == {"train": 5.0, "eval": 2.0}
+  assert out[3]["result"]["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
   assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
   stored = json.loads(Path(old.result).read_text())
   assert stored["result"]["eval"] == {"chamfer_um": 1.0} and "skipped" not in stored
