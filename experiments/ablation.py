@@ -448,8 +448,17 @@ def commits_line(records: list[dict]) -> str:
       variants[r["job"]["variant"]] = variants.get(r["job"]["variant"], 0) + 1
   parts = [f"`{c}` {sum(v.values())} (" + ", ".join(f"{LABELS.get(k, k)} {n}" for k, n in v.items())
            + ")" for c, v in by_commit.items()]
+  again: dict[str, int] = {}  # meshes exported again from their checkpoints, by commit
+  for r in records:
+    res = r.get("result", {})
+    if "export" in res.get("stages_s", {}) and "eval_git" in res:
+      c = res["eval_git"]["commit"][:7]
+      again[c] = again.get(c, 0) + 1
   return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
-          "unchanged): " + "; ".join(parts) + ".")
+          "unchanged): " + "; ".join(parts) + "."
+          + "".join(f" {n} of their meshes exported again from the runs' last checkpoints and "
+                    f"evaluated at `{c}` (the export's vertex refinement changed)."
+                    for c, n in again.items()))
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:

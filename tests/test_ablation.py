@@ -132,3 +132,14 @@ def test_figure_marks_a_kept_run_whose_directory_is_gone(tmp_path):
   out = tmp_path / "figures" / "associate_seed.png"
   ablation.figure(out, "seed", records)
   assert plt.imread(out).shape[1] > plt.imread(out).shape[0]  # two methods side by side
+
+
+def test_commits_line_counts_runs_and_the_meshes_exported_again(tmp_path):
+  fused, wli = _job(tmp_path, "true"), _job(tmp_path, "true", "wli")
+  records = [_finished(fused), _finished(wli)]
+  records[1]["result"]["stages_s"]["export"] = 3.0
+  records[1]["result"]["eval_git"] = {"commit": "b" * 40}
+  line = ablation.commits_line(records)
+  assert "`aaaaaaa` 2 (Fused 1, WLI only 1)" in line
+  assert "1 of their meshes exported again" in line and "`bbbbbbb`" in line
+  assert "exported again" not in ablation.commits_line(records[:1])
