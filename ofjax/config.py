@@ -101,6 +101,10 @@ class OptimConfig:
   eps: float = 1e-15
   warmup_steps: int = 500  # linear warm-up length
   decay_to: float = 0.1  # the rate at the last step, as a fraction of `lr`
+  # Time constant of an exponential moving average of the parameters, as a fraction of
+  # train.steps; the run's mesh is made from that average (ofjax.averaging). 0: from the last
+  # step's parameters, as the paper.
+  ema_fraction: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -190,13 +190,20 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
 
 
 def load_run(run_dir: Path):
-  """(params, cfg, norm, box, units) of a run directory's newest checkpoint."""
+  """(params, cfg, norm, box, units) of a run directory's newest checkpoint; params are the average
+  the mesh is made from when the run keeps one (optim.ema_fraction)."""
   cfg_path = run_dir / "config.json"
   if not cfg_path.is_file():
     raise UserError(f"{cfg_path}: not found; is {run_dir} an ofjax run directory?")
   meta = json.loads(cfg_path.read_text())
   cfg = Config.from_dict(meta["config"])
-  params = checkpoint.restore_params(run_dir, fields.init_params(jax.random.PRNGKey(0), cfg))
+  template = fields.init_params(jax.random.PRNGKey(0), cfg)
+  if cfg.optim.ema_fraction > 0:  # the mesh comes from the parameters' average (ofjax.averaging)
+    from ofjax import averaging, train
+    state = checkpoint.restore(run_dir, template, train.make_optimizer(cfg).init(template))
+    params = None if state is None else averaging.averaged(state[2])
+  else:
+    params = checkpoint.restore_params(run_dir, template)
   if params is None:
     raise UserError(f"{run_dir}: no checkpoint found; train first")
   norm = scene_lib.Normalization(tuple(meta["normalization"]["center"]),

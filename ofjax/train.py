@@ -31,7 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ofjax import cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit, render
+from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit,
+                   render)
 from ofjax import scene as scene_lib
 from ofjax.config import Config, resolve_spec, with_steps, PRESETS
 from ofjax.errors import UserError, cli
@@ -175,9 +176,11 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
   oc = cfg.optim
   adam = lambda lr: optax.adam(lr_schedule(lr, cfg), b1=oc.b1, b2=oc.b2, eps=oc.eps)
   labels = lambda params: {k: ("variance" if k == "variance" else "net") for k in params}
+  opt = optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels)
+  if oc.ema_fraction > 0:
+    opt = averaging.with_param_ema(opt, averaging.decay_for(oc.ema_fraction, cfg.train.steps))
   # Divergence guard: a step with a non-finite gradient or update is skipped (ofjax.guard).
-  return guard.skip_non_finite(
-      optax.multi_transform({"net": adam(oc.lr), "variance": adam(oc.lr_inv_s)}, labels))
+  return guard.skip_non_finite(opt)
 
 
 def reference_scale(data: TrainData, cfg: Config):
@@ -262,7 +265,7 @@ KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row"
 
 @dataclasses.dataclass
 class RunResult:
-  params: Any
+  params: Any  # what the mesh is made from: the last step's, or their average (optim.ema_fraction)
   cfg: Config
   norm: scene_lib.Normalization
   box: tuple[tuple[float, ...], tuple[float, ...]]  # observed region in normalised coordinates
@@ -376,7 +379,8 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
   finally:
     bar.close()
   jax.block_until_ready(params)
-  return RunResult(params, cfg, norm, box, time.time() - t0, start,
+  ema = averaging.averaged(opt_state)
+  return RunResult(params if ema is None else ema, cfg, norm, box, time.time() - t0, start,
                    guard.stats(opt_state)["skipped"])
 
 
