@@ -32,7 +32,7 @@ import numpy as np
 from ofjax import metrics
 from ofjax.eval import load_ground_truth
 from ofjax.meshquery import MeshQuery, load_mesh
-from ofjax.scene import K_from_json, load_poses, project_pinhole
+from ofjax.scene import K_from_json, load_poses, project_orthographic, project_pinhole
 
 MAX_VERTICES = 40_000  # a random subset of each mesh (seed 0): enough for medians and shares
 # A line of sight counts as blocked when it meets the true surface this far (um) before the vertex:
@@ -53,17 +53,12 @@ def signed_offsets(gt: MeshQuery, v: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def seen_by(gt: MeshQuery, v: np.ndarray, camera: dict) -> np.ndarray:
   """[N] bool: which points v [N, 3] (um) `camera` (a poses.json entry) sees through free space."""
   c2w = np.asarray(camera["c2w"], np.float64)
+  shape = (camera["height"], camera["width"])
   if camera["intrinsics"]["model"] == "orthographic":
-    rot = c2w[:3, :3]
-    local = (v - c2w[:3, 3]) @ rot  # camera coordinates, [N, 3]
-    sx, sy = camera["intrinsics"]["pixel_size"]
-    col = local[:, 0] / sx + camera["width"] / 2
-    row = local[:, 1] / sy + camera["height"] / 2
-    inside = (col >= 0) & (col < camera["width"]) & (row >= 0) & (row < camera["height"])
-    origins = v - WLI_STANDOFF_UM * rot[:, 2]
+    *_, inside = project_orthographic(v, c2w, camera["intrinsics"]["pixel_size"], shape)
+    origins = v - WLI_STANDOFF_UM * c2w[:3, 2]
   else:
-    _, _, inside = project_pinhole(v, K_from_json(camera["intrinsics"]), c2w,
-                                   (camera["height"], camera["width"]))
+    _, _, inside = project_pinhole(v, K_from_json(camera["intrinsics"]), c2w, shape)
     origins = c2w[:3, 3]
   return inside & gt.clear(origins, v, abs_slack=OCCLUSION_TOL_UM)
 

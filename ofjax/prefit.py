@@ -96,19 +96,15 @@ def free_space(r_um: np.ndarray, scans) -> np.ndarray:
   front = np.zeros(len(r_um), bool)
   behind = np.zeros(len(r_um), bool)
   for scan in scans:
-    rot, t = scan.c2w[:3, :3], scan.c2w[:3, 3]
-    local = (r_um - t) @ (rot / np.linalg.norm(rot, axis=0))  # camera axes; z along the view
-    (h, w), (sx, sy) = scan.shape, scan.pixel_size
-    # The pixel whose ray passes nearest: scene.wli_rays' pixel centres, inverted.
-    col = np.floor(local[:, 0] / sx + w / 2).astype(np.int64)
-    row = np.floor(local[:, 1] / sy + h / 2).astype(np.int64)
-    seen = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    col, row, z, seen = scene_lib.project_orthographic(r_um, scan.c2w, scan.pixel_size, scan.shape)
+    # The pixel whose ray passes nearest: the one the point projects into.
     depth = np.full(len(r_um), np.nan)
-    depth[seen] = scan.depth[row[seen], col[seen]]
-    margin = SIDE_MARGIN_PX * max(sx, sy)
+    depth[seen] = scan.depth[np.floor(row[seen]).astype(np.int64),
+                             np.floor(col[seen]).astype(np.int64)]
+    margin = SIDE_MARGIN_PX * max(scan.pixel_size)
     with np.errstate(invalid="ignore"):  # NaN depths (voids) compare False: no evidence
-      front |= local[:, 2] < depth - margin
-      behind |= local[:, 2] > depth + margin
+      front |= z < depth - margin
+      behind |= z > depth + margin
   return np.where(front, 1.0, np.where(behind, -1.0, 0.0))
 
 

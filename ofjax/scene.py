@@ -151,6 +151,27 @@ def om_rays(image: OMImage, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
   return o, d
 
 
+def project_orthographic(points: np.ndarray, c2w: np.ndarray, pixel_size: tuple[float, float],
+                         shape: tuple[int, int]
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """Where points land in an orthographic (WLI) scan: `wli_rays` inverted.
+
+  Args:
+    points: [N, 3] um.
+    c2w: [4, 4] the scan's camera-to-world; pixel_size: (sx, sy) um; shape: (H, W).
+  Returns:
+    col, row: [N] continuous coordinates (pixel (c, r) spans [c, c + 1) x [r, r + 1)).
+    z: [N] um along the scan's axis from its image plane (what `depth` measures).
+    inside: [N] bool, inside the frame.
+  """
+  rot, t = c2w[:3, :3], c2w[:3, 3]
+  local = (points - t) @ (rot / np.linalg.norm(rot, axis=0))  # camera axes; z along the view
+  (h, w), (sx, sy) = shape, pixel_size
+  col, row = local[:, 0] / sx + w / 2, local[:, 1] / sy + h / 2
+  inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)  # NaN compares False
+  return col, row, local[:, 2], inside
+
+
 def project_pinhole(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, shape: tuple[int, int]
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Where points land in a pinhole (OM) photo.

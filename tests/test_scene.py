@@ -1,4 +1,4 @@
-"""ofjax.scene's host-side camera geometry: projection inverts the ray generator."""
+"""ofjax.scene's host-side camera geometry: projections invert the ray generators."""
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -38,3 +38,23 @@ def test_points_behind_beside_and_in_the_plane_of_the_camera_are_outside():
                      centre + 100.0 * d[29, 39]])        # in front, the last pixel
   _, _, inside = scn.project_pinhole(points, photo.K, photo.c2w, photo.shape)
   np.testing.assert_array_equal(inside, [False, False, False, True, True])
+
+
+def test_orthographic_projection_inverts_the_scan_rays():
+  c2w = np.eye(4)
+  c2w[:3, :3] = Rotation.from_euler("xyz", [160.0, -25.0, 70.0], degrees=True).as_matrix()
+  c2w[:3, 3] = [-4.0e3, 9.0e3, 350.0]
+  scan = scn.WLIScan("0000", np.zeros((20, 30), np.float32), (1.3, 0.9), c2w=c2w)
+  o, d = scn.wli_rays(scan)
+  depth = np.random.default_rng(1).uniform(-50.0, 50.0, d.shape[:2])
+  points = (o + depth[..., None] * d).reshape(-1, 3)
+  col, row, z, inside = scn.project_orthographic(points, c2w, scan.pixel_size, scan.shape)
+  rows, cols = np.meshgrid(np.arange(20), np.arange(30), indexing="ij")
+  np.testing.assert_allclose(col, cols.ravel() + 0.5, atol=1e-6)
+  np.testing.assert_allclose(row, rows.ravel() + 0.5, atol=1e-6)
+  np.testing.assert_allclose(z, depth.ravel(), atol=1e-6)
+  assert inside.all()
+  beside = o[0, 0] - 1.0 * scan.pixel_size[0] * c2w[:3, 0]  # one pixel left of the first column
+  below = o[-1, 0] + 1.0 * scan.pixel_size[1] * c2w[:3, 1]  # one pixel below the last row
+  *_, out = scn.project_orthographic(np.stack([beside, below]), c2w, scan.pixel_size, scan.shape)
+  np.testing.assert_array_equal(out, [False, False])
