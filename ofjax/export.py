@@ -56,13 +56,15 @@ def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
   return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
 
 
-def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int = REFINE_STEPS
-                   ) -> trimesh.Trimesh:
+def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int = REFINE_STEPS,
+                   min_component: float = 0.0) -> trimesh.Trimesh:
   """Zero level set of sdf_fn (positive outside) on a grid over [lo, hi]; faces point outside.
 
   refine_steps: bisection steps that move every vertex from the linear interpolation between its
     grid edge's two nodes to the SDF's own zero on that edge (`refine_on_edges`); 0 keeps the
     linear interpolation.
+  min_component: components with fewer than this share of the largest one's faces are dropped
+    (`drop_small_components`), before the refinement, which does not change the faces.
   Returns a mesh in the coordinates of sdf_fn (empty when the SDF has no sign change there).
   """
   lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
@@ -74,12 +76,15 @@ def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int 
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
   spacing = (hi - lo) / (np.asarray(shape) - 1)
   verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=tuple(spacing))
-  verts = np.asarray(verts, np.float64)
-  if refine_steps:
-    verts = refine_on_edges(sdf_fn, vol, verts, spacing, lo, refine_steps)
   # scikit-image orients faces towards increasing values; the SDF grows outwards, so this is
   # already outward. (Checked by tests/test_export.py on a sphere.)
-  return trimesh.Trimesh(verts + lo, faces, process=False)
+  mesh = drop_small_components(
+      trimesh.Trimesh(np.asarray(verts, np.float64), faces, process=False), min_component)
+  if refine_steps:
+    mesh.vertices = refine_on_edges(sdf_fn, vol, np.asarray(mesh.vertices), spacing, lo,
+                                    refine_steps)
+  mesh.vertices = np.asarray(mesh.vertices) + lo
+  return mesh
 
 
 # A marching-cubes vertex sits on a grid edge: two of its grid coordinates are whole numbers (up to
@@ -136,7 +141,7 @@ def refine_on_edges(sdf_fn: Callable, vol: np.ndarray, verts: np.ndarray, spacin
 
 def drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
   """Removes connected components with fewer than min_fraction of the largest one's faces."""
-  if len(mesh.faces) == 0:
+  if len(mesh.faces) == 0 or min_fraction <= 0:
     return mesh
   labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
   counts = np.bincount(labels)
@@ -155,8 +160,7 @@ def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,
   sdf_fn: [N, 3] -> [N]; color_fn: [N, 3] -> [N, 3] in [0, 1]; both on normalised points.
   refine_steps: see `marching_cubes`.
   """
-  mesh = drop_small_components(marching_cubes(sdf_fn, lo, hi, resolution, refine_steps),
-                               min_component)
+  mesh = marching_cubes(sdf_fn, lo, hi, resolution, refine_steps, min_component)
   if len(mesh.vertices):
     rgb = evaluate_chunked(color_fn, np.asarray(mesh.vertices))
     mesh.visual.vertex_colors = np.concatenate(

@@ -44,17 +44,41 @@ def test_sphere_sdf_exports_a_sphere_in_um_with_its_colours(tmp_path):
                                 np.asarray(mesh.visual.vertex_colors)[:, :3])
 
 
-def test_small_floating_components_are_dropped():
-  def two_spheres(x):
-    big = jnp.linalg.norm(x - jnp.array([-0.3, 0.0, 0.0]), axis=-1) - 0.5
-    small = jnp.linalg.norm(x - jnp.array([0.75, 0.0, 0.0]), axis=-1) - 0.08
-    return jnp.minimum(big, small)
+def two_spheres(x):
+  big = jnp.linalg.norm(x - jnp.array([-0.3, 0.0, 0.0]), axis=-1) - 0.5
+  small = jnp.linalg.norm(x - jnp.array([0.75, 0.0, 0.0]), axis=-1) - 0.08
+  return jnp.minimum(big, small)
 
+
+def test_small_floating_components_are_dropped():
   mesh = export.surface_mesh(two_spheres, color_fn, (-1, -1, -1), (1, 1, 1), 64, NORM,
                              min_component=0.05)
   centre = NORM.to_norm(np.asarray(mesh.vertices)).mean(0)
   assert len(trimesh.graph.connected_components(mesh.face_adjacency)) == 1
   np.testing.assert_allclose(centre, [-0.3, 0.0, 0.0], atol=0.01)
+
+
+def test_dropped_components_are_not_refined():
+  """Dropping before the refinement gives the kept component's refined vertices as refining all
+  and dropping after would, and evaluates the SDF on no edge of the dropped sphere."""
+  queried = []
+
+  def recording(x):
+    queried.append(np.asarray(x))
+    return two_spheres(x)
+
+  args = ((-1, -1, -1), (1, 1, 1), 64)
+  kept = export.marching_cubes(recording, *args, min_component=0.05)
+  near_small = [np.abs(np.linalg.norm(q - [0.75, 0.0, 0.0], axis=1) - 0.08) < 0.05
+                for q in queried]
+  grid_calls = -(-np.prod(export.grid_shape(*args)) // export.CHUNK)
+  assert np.concatenate(near_small[:grid_calls]).any()  # the grid samples it
+  assert not np.concatenate(near_small[grid_calls:]).any()  # the bisection does not
+  everything = export.marching_cubes(two_spheres, *args)
+  assert len(kept.vertices) < len(everything.vertices)
+  after = export.drop_small_components(everything, 0.05)
+  np.testing.assert_array_equal(kept.faces, after.faces)
+  np.testing.assert_array_equal(kept.vertices, after.vertices)
 
 
 def test_no_surface_gives_an_empty_mesh():
