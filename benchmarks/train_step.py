@@ -164,7 +164,8 @@ def run(specs: list[str], rays, samples, steps, naive: bool, bound: bool = False
 
 
 def table(results: dict, info: dict) -> str:
-  lines = [f"machine: {machine.line(info)}",
+  slow_gpu = machine.scatter_regression_warning(info["jax"], info["backend"])
+  lines = [f"machine: {machine.line(info)}", *([f"warning: {slow_gpu}"] if slow_gpu else []),
            f"{'preset':<34} {'rays':>5} {'smp/ray':>7} {'it/s':>7} {'samples/s':>10} "
            f"{'naive smp/s':>11} {'speedup':>7} {'bound smp/s':>11} {'of bound':>8} "
            f"{'compile s':>9} {'peak MB':>8}"]

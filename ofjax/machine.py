@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib.metadata
 import os
 import platform
+import re
 from typing import Any
 
 
@@ -42,6 +43,32 @@ def describe(devices: bool = False) -> dict[str, Any]:
     info["backend"] = jax.default_backend()
     info["devices"] = [f"{d.platform}:{d.id} {d.device_kind}" for d in jax.devices()]
   return info
+
+
+# JAX releases whose float32 scatter-add on GPU regressed (first, last). The hash table's gradient
+# is one scatter-add per step, so training and the benchmarks there run slow; CPU is unaffected.
+GPU_SCATTER_REGRESSION = ((0, 10, 2), (0, 11, 0))
+
+
+def release(version: str) -> tuple[int, ...]:
+  """(0, 10, 2) from "0.10.2" (a suffix such as ".dev20260101" or "rc1" is dropped)."""
+  parts = []
+  for piece in version.split(".")[:3]:
+    digits = re.match(r"\d+", piece)
+    if digits is None:
+      break
+    parts.append(int(digits.group()))
+  return tuple(parts)
+
+
+def scatter_regression_warning(jax_version: str, backend: str) -> str | None:
+  """The warning for a GPU run on a JAX release with the slow scatter-add; None when not one."""
+  first, last = GPU_SCATTER_REGRESSION
+  if backend not in ("gpu", "cuda", "rocm") or not first <= release(jax_version) <= last:
+    return None
+  return (f"JAX {jax_version} on GPU has a slow float32 scatter-add (releases "
+          f"{'.'.join(map(str, first))}-{'.'.join(map(str, last))}), which the hash table's "
+          "gradient uses every step: install another release, e.g. pip install -e '.[gpu]'")
 
 
 def line(info: dict[str, Any]) -> str:

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, parallel, prefit,
-                   render)
+from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, machine, parallel,
+                   prefit, render)
 from ofjax import scene as scene_lib
 from ofjax.config import Config, resolve_spec, with_steps, PRESETS
 from ofjax.errors import UserError, cli
@@ -502,6 +502,9 @@ def main(argv=None) -> int:
   if args.resume:
     cfg = resume_config(run_dir, cfg)
   scene = load_scene_for_training(args)
+  slow_gpu = machine.scatter_regression_warning(jax.__version__, jax.default_backend())
+  if slow_gpu:
+    print(f"ofjax: warning: {slow_gpu}", file=sys.stderr)
   result = train(scene, cfg, run_dir, progress=not args.quiet,
                  meta={"data": str(Path(args.data).resolve()), "poses": args.poses},
                  resume=args.resume)

@@ -37,3 +37,20 @@ def test_line_reads_new_and_old_records():
   # A record from before the CPU model and JAX version were kept (experiments/results/*_init/).
   old = {"host": "vm", "platform": "Linux-6.1", "processor": "x86_64", "cpus": 2, "python": "3.11.7"}
   assert machine.line(old) == "vm, 2 CPUs, Linux-6.1, Python 3.11.7"
+
+
+def test_release_reads_plain_and_suffixed_versions():
+  assert machine.release("0.10.2") == (0, 10, 2)
+  assert machine.release("0.11.0rc1") == (0, 11, 0)
+  assert machine.release("0.11.1.dev20261201") == (0, 11, 1)
+  assert machine.release("1.0") == (1, 0)
+
+
+def test_scatter_warning_names_only_gpu_runs_on_the_regressed_releases():
+  for version in ("0.10.2", "0.10.5", "0.11.0", "0.11.0rc1"):
+    message = machine.scatter_regression_warning(version, "gpu")
+    assert message is not None and version in message and ".[gpu]" in message
+  for version in ("0.10.1", "0.9.2", "0.11.1", "1.0.0"):
+    assert machine.scatter_regression_warning(version, "gpu") is None
+  assert machine.scatter_regression_warning("0.10.2", "cpu") is None
+  assert machine.scatter_regression_warning("0.10.2", "tpu") is None
