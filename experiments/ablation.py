@@ -200,11 +200,8 @@ def preset_fingerprint() -> str:
 
 
 def git_state() -> dict:
-  def git(*a):
-    return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-  return {"commit": git("rev-parse", "HEAD"),
-          "uncommitted_code": git("status", "--porcelain", "--", "ofjax", "experiments/sweep.py",
-                                  "experiments/ablation.py").splitlines()}
+  """The checkout's commit, and which of the code the records depend on has uncommitted changes."""
+  return machine.git_state(("ofjax", "experiments/sweep.py", "experiments/ablation.py"))
 
 
 def _mean_sd(values: list[float]) -> tuple[float, float, int]:

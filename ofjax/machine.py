@@ -1,4 +1,5 @@
-"""What a run ran on, for records and reports: host, CPU model, cores, platform, Python, JAX.
+"""What a run ran on, for records and reports: host, CPU model, cores, platform, Python, JAX, and
+the ofjax commit.
 
 One description shared by the sweep records, the experiments' reports and the benchmarks, so a
 table says the same machine the same way. `describe()` is a JSON-ready dict; `line(info)` its one
@@ -11,6 +12,8 @@ import importlib.metadata
 import os
 import platform
 import re
+import subprocess
+from pathlib import Path
 from typing import Any
 
 
@@ -25,6 +28,29 @@ def cpu_model() -> str:
     pass
   # macOS and Windows: platform.processor() names the CPU (family) or is empty.
   return platform.processor() or platform.machine()
+
+
+def git_state(paths: tuple[str, ...] = ("ofjax",)) -> dict[str, Any]:
+  """The ofjax checkout this code runs from: {"commit": HEAD or None, "uncommitted_code": [...]}.
+
+  paths: what counts as code (relative to the checkout's root); `uncommitted_code` lists the ones
+    with changes `git status --porcelain` shows. An installed ofjax (no checkout, or no git) gives
+    {"commit": None, "uncommitted_code": []}.
+  """
+  root = Path(__file__).resolve().parents[1]
+
+  def git(*args: str) -> str | None:
+    try:
+      done = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
+    except OSError:  # no git on this machine
+      return None
+    return done.stdout if done.returncode == 0 else None
+
+  head = git("rev-parse", "HEAD") if (root / ".git").exists() else None
+  # Not stripped: a porcelain line starts with a space when only the work tree changed.
+  changes = git("status", "--porcelain", "--", *paths) if head else None
+  return {"commit": head.strip() if head else None,
+          "uncommitted_code": changes.splitlines() if changes else []}
 
 
 def describe(devices: bool = False) -> dict[str, Any]:

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ofjax import __version__ as ofjax_version
 from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, machine, parallel,
                    prefit, render)
 from ofjax import scene as scene_lib
@@ -345,7 +346,9 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
       fileio.write_json(run_dir / "config.json", {
           "config": cfg.to_dict(), "units": scene.units,
           "normalization": dataclasses.asdict(norm), "observed_box": box,
-          "jax": jax.__version__, "backend": jax.default_backend(), **prefit_logs, **(meta or {})})
+          "jax": jax.__version__, "backend": jax.default_backend(),
+          "ofjax": {"version": ofjax_version, **machine.git_state()}, **prefit_logs,
+          **(meta or {})})
   # time_s continues across resumes: it is the training time (the WLI fit's included), not the
   # wall clock.
   t_before = json.loads(lines[-1])["time_s"] if lines else prefit_s

@@ -3,6 +3,8 @@
 import json
 import os
 import platform
+import subprocess
+from pathlib import Path
 
 from ofjax import machine
 
@@ -54,3 +56,16 @@ def test_scatter_warning_names_only_gpu_runs_on_the_regressed_releases():
     assert machine.scatter_regression_warning(version, "gpu") is None
   assert machine.scatter_regression_warning("0.10.2", "cpu") is None
   assert machine.scatter_regression_warning("0.10.2", "tpu") is None
+
+
+def test_git_state_names_this_checkouts_commit():
+  root = Path(machine.__file__).resolve().parents[1]
+  head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True)
+  state = machine.git_state()
+  if head.returncode != 0:  # an installed copy, not a checkout
+    assert state == {"commit": None, "uncommitted_code": []}
+  else:
+    assert state["commit"] == head.stdout.strip()
+    changed = subprocess.run(["git", "status", "--porcelain", "--", "ofjax"], cwd=root,
+                             capture_output=True, text=True).stdout.splitlines()
+    assert state["uncommitted_code"] == changed

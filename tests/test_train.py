@@ -1,6 +1,7 @@
 """The train step: batches, schedule, shapes, loss decrease, and an end-to-end accuracy check."""
 
 import dataclasses
+import json
 
 import chex
 import jax
@@ -11,7 +12,8 @@ import pytest
 import trimesh
 
 import analytic_scene
-from ofjax import export, fields, metrics, train
+import ofjax
+from ofjax import export, fields, machine, metrics, train
 from ofjax import scene as scene_lib
 from ofjax.config import resolve
 from ofjax.errors import UserError
@@ -179,7 +181,10 @@ def test_end_to_end_chamfer_on_the_cap(cap, tmp_path):
   ev = metrics.evaluate(pred, metrics.GroundTruth(gt_mesh, pts), n_samples=50000)
   pixel = scene.wli[0].pixel_size[0]
   assert ev.summary["chamfer_um"] < pixel, ev.summary
-  assert (tmp_path / "metrics.jsonl").is_file() and (tmp_path / "config.json").is_file()
+  assert (tmp_path / "metrics.jsonl").is_file()
+  written = json.loads((tmp_path / "config.json").read_text())
+  assert written["ofjax"]["version"] == ofjax.__version__
+  assert written["ofjax"]["commit"] == machine.git_state()["commit"]
 
 
 def test_set_overrides_any_field_and_a_wli_init_needs_wli_rays(cap, tmp_path):
