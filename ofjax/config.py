@@ -199,7 +199,7 @@ PRESETS: dict[str, Config] = {
         loss=LossConfig(lambda_residual=0.01, lambda_wli_surface=30.0),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
                             cos_anneal_steps=1000, wli_guided_samples=8),
-        optim=OptimConfig(warmup_steps=100),
+        optim=OptimConfig(warmup_steps=100, ema_fraction=0.05),
         train=TrainConfig(steps=1200, n_rays=512, log_every=50, checkpoint_every=400,
                           mesh_resolution=192),
         preset="cpu",
