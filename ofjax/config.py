@@ -193,6 +193,10 @@ PRESETS: dict[str, Config] = {
     # scenes at 600 steps (true poses), the spread over three seeds of `seed` from +-0.08 to
     # +-0.04 um, at -0.4 dB of albedo on average; 10 left one seed's substrate 1.4 um low
     # (experiments/README.md).
+    # The mesh from the parameters' moving average (time constant 5% of the run): over the five
+    # scenes at 600 steps 0.96x the Chamfer and 3-7x less spread over seeds; `lenses`, still
+    # converging there, 1.09x, level at 1,200 steps; `seed` at 2,400 steps 0.76x
+    # (experiments/README.md).
     "cpu": Config(
         hash=HashConfig(log2_table_size=16, gather_groups=4),
         model=ModelConfig(init_shape="wli"),
