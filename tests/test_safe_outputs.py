@@ -142,10 +142,22 @@ def test_export_refuses_non_finite_parameters(run_copy, capsys):
   template = fields.init_params(jax.random.PRNGKey(0), cfg)
   step, params, opt_state = checkpoint.restore(run, template,
                                                train_lib.make_optimizer(cfg).init(template))
-  leaves, tree = jax.tree_util.tree_flatten(params)
-  leaves[0] = np.asarray(leaves[0]).copy()
-  leaves[0].flat[0] = np.nan  # one NaN weight: a diverged run
-  checkpoint.save(run, step, jax.tree_util.tree_unflatten(tree, leaves), opt_state, keep=1)
+  def poisoned(tree):
+    """One NaN weight in the first parameter array, and in every optimiser-state array of its
+    shape (Adam's moments, the moving average export reads when the preset keeps one): a diverged
+    run."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    shape = jax.tree_util.tree_leaves(params)[0].shape
+    out = []
+    for leaf in leaves:
+      leaf = np.asarray(leaf)
+      if leaf.shape == shape and np.issubdtype(leaf.dtype, np.floating):
+        leaf = leaf.copy()
+        leaf.flat[0] = np.nan
+      out.append(leaf)
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+  checkpoint.save(run, step, poisoned(params), poisoned(opt_state), keep=1)
   before = _listing(run)
   capsys.readouterr()
   # `python -m ofjax.export RUN` is this main (test_bad_input.py runs such CLIs as subprocesses).
