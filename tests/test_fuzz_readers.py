@@ -27,8 +27,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 # OFJAX_FUZZ_EXAMPLES=N runs N examples per reader instead of 200 (a deeper search by hand);
 # OFJAX_FUZZ_RANDOM=1 draws new examples each run. By default the examples are the same in every
-# run (derandomize): a CI run once lost a pytest worker to a crash inside h5py on a random .datx
-# mutation (a segfault, not an exception), which a random draw can repeat at any time.
+# run (derandomize), so that a failure found in CI is found again by the next run.
 FUZZ = settings(max_examples=int(os.environ.get("OFJAX_FUZZ_EXAMPLES", 200)), deadline=None,
                 database=None, derandomize=not os.environ.get("OFJAX_FUZZ_RANDOM"),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
@@ -134,15 +133,7 @@ def mutated(draw, seed: bytes):
   return bytes(data)
 
 
-# KNOWN BUG (found stop 25, not fixed): h5py segfaults reading the X/Y Converter attribute of some
-# byte-flipped .datx files (ofjax/io/datx.py `_lateral_step`, `attrs[axis][0]`), which kills the
-# process instead of raising; the fixed examples hit one. Until the reader guards against it, the
-# datx case is skipped rather than left to take a pytest worker (and CI) down with it.
-DATX_SEGFAULT = pytest.mark.skip(reason="h5py segfaults on a corrupt .datx converter attribute")
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=DATX_SEGFAULT) if n == "datx" else n
-                                  for n in READERS])
+@pytest.mark.parametrize("name", READERS)
 def test_reader_raises_only_user_errors(tmp_path, name):
   suffix, make, read = READERS[name]
   seed = make()

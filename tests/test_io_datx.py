@@ -113,3 +113,22 @@ def test_intensity_only_file_is_a_user_error(tmp_path):
     f.create_dataset("Data/Intensity/{I}", data=np.ones((4, 4)))
   with pytest.raises(UserError, match="no /Data/Surface"):
     wli.read_height_map(tmp_path / "m.datx")
+
+
+def test_a_file_that_crashes_hdf5_is_a_user_error():
+  # tests/data/damaged_converter.datx is a valid .datx (write_datx) with one byte changed inside
+  # a converter attribute's variable-length data: reading that attribute in-process segfaulted
+  # (h5py 3.16, HDF5 2.0). read_datx reads in a child, so this process survives and says so.
+  from pathlib import Path
+  path = Path(__file__).parent / "data" / "damaged_converter.datx"
+  with pytest.raises(UserError, match="damaged_converter.datx: cannot read the .datx") as e:
+    wli.read_height_map(path)
+  assert "\n" not in str(e.value)
+
+
+def test_the_child_reports_user_errors_as_one_line(tmp_path):
+  write_datx(tmp_path / "m.datx", _values(), unit=b"Furlongs")
+  with pytest.raises(UserError) as e:
+    wli.read_height_map(tmp_path / "m.datx")
+  # The child's own message, not its "ofjax: error:" prefix nor a generic crash note.
+  assert str(e.value).startswith(f"{tmp_path / 'm.datx'}: unknown height unit 'Furlongs'")

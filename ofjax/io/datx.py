@@ -19,10 +19,21 @@ The structure read (as Zygo Mx writes it):
                               "...Lateral Resolution:Unit" says otherwise): the step when the
                               surface has no X/Y converter.
 Rows are kept in the file's order (row 0 first); heights and steps are returned in um.
+
+The file is read in a child process (`python -m ofjax.io.datx FILE OUT.npz`, about 0.3 s each):
+HDF5 dereferences the variable-length strings and arrays of the converter attributes and the
+MetaData table through heap addresses stored in the file, and on a damaged file it can crash the
+process (a segfault) instead of raising. In a child, a crash becomes a one-line UserError.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +45,8 @@ UM_PER_UNIT = {"meters": 1e6, "millimeters": 1e3, "micrometers": 1.0, "microns":
                "nanometers": 1e-3, "angstroms": 1e-4, "inches": 25400.0, "mils": 25.4,
                "microinches": 0.0254, "feet": 304800.0}
 LATERAL_KEY = "Lateral Resolution:Value"
+# A child still reading after this long is stuck on a damaged file (a valid map reads in < 1 s).
+READ_TIMEOUT_S = 300.0
 
 
 def _text(v) -> str:
@@ -110,10 +123,9 @@ def _lateral_step(f, attrs, path: Path) -> tuple[float, float]:
                   "attribute); re-export the measurement from Mx")
 
 
-def read_datx(path: str | Path) -> HeightMap:
-  """Heights (um, NaN voids) and lateral step (um) of a Zygo .datx file."""
+def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str]:
+  """(heights in um with NaN voids, (sx, sy) um, height unit, surface key), in this process."""
   import h5py
-  path = Path(path)
   try:
     with h5py.File(path, "r") as f:
       key = _surface_key(f, path)
@@ -133,6 +145,54 @@ def read_datx(path: str | Path) -> HeightMap:
     raise UserError(f"{path}: surface {key!r} has shape {raw.shape}, not a 2-D map; export a "
                     "single height map")
   raw[raw >= no_data] = np.nan
-  height = validate_height(path, raw * scale)
+  return raw * scale, step, unit, key
+
+
+def _crash_reason(returncode: int, stderr: str) -> str:
+  if returncode < 0:
+    try:
+      return f"the HDF5 library crashed on it: {signal.Signals(-returncode).name}"
+    except ValueError:
+      pass
+  last = stderr.strip().splitlines()[-1:] or ["no message"]
+  return f"the reader exited with code {returncode}: {last[0]}"
+
+
+def read_datx(path: str | Path) -> HeightMap:
+  """Heights (um, NaN voids) and lateral step (um) of a Zygo .datx file, read in a child."""
+  path = Path(path)
+  with tempfile.TemporaryDirectory(prefix="ofjax-datx-") as tmp:
+    out = Path(tmp) / "map.npz"
+    # The child imports this very ofjax, wherever the parent found it.
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    try:
+      child = subprocess.run([sys.executable, "-m", "ofjax.io.datx", str(path), str(out)],
+                             capture_output=True, text=True, timeout=READ_TIMEOUT_S, env=env)
+    except subprocess.TimeoutExpired:
+      raise UserError(f"{path}: reading the .datx file took over {READ_TIMEOUT_S:.0f} s (a "
+                      "damaged file?); re-copy or re-export it") from None
+    if child.returncode == 2 and child.stderr.strip():
+      raise UserError(child.stderr.strip().splitlines()[-1].removeprefix("ofjax: error: "))
+    if child.returncode != 0 or not out.exists():
+      raise UserError(f"{path}: cannot read the .datx file ({_crash_reason(child.returncode, child.stderr)}); "
+                      "check that it is complete (re-copy or re-export it)")
+    with np.load(out) as z:
+      height, step = z["height"], tuple(float(v) for v in z["step"])
+      meta = json.loads(str(z["meta"]))
+  height = validate_height(path, height)
   return HeightMap(height, step, {"file": str(path), "format": "datx", "reader": "h5py",
-                                  "units": unit, "surface": key})
+                                  "units": meta["unit"], "surface": meta["key"]})
+
+
+def _child_main(argv: list[str]) -> None:
+  """`python -m ofjax.io.datx FILE OUT.npz`: the read that read_datx runs in a child."""
+  path, out = Path(argv[0]), Path(argv[1])
+  height, step, unit, key = _read_here(path)
+  np.savez(out, height=height, step=np.asarray(step, np.float64),
+           meta=np.asarray(json.dumps({"unit": unit, "key": key})))
+
+
+if __name__ == "__main__":
+  from ofjax.errors import cli
+  sys.exit(cli(_child_main)(sys.argv[1:]))
