@@ -21,7 +21,7 @@ import open3d as o3d
 reg = o3d.pipelines.registration
 
 
-def _fit(src: np.ndarray, dst: np.ndarray, with_scaling: bool) -> np.ndarray:
+def fit_transform(src: np.ndarray, dst: np.ndarray, with_scaling: bool) -> np.ndarray:
   """[4, 4] transform mapping src [N, 3] onto dst [N, 3] in least squares (Umeyama)."""
   corr = o3d.utility.Vector2iVector(np.stack([np.arange(len(src))] * 2, 1).astype(np.int32))
   return np.asarray(reg.TransformationEstimationPointToPoint(with_scaling).compute_transformation(
@@ -51,7 +51,7 @@ def gauge(est: dict, gt: dict, scene_size: float) -> np.ndarray:
     raise ValueError("the two poses files share no WLI camera name, so the gauge is undefined")
   src = _pose_points([np.asarray(e[n]["c2w"]) for n in names], scene_size)
   dst = _pose_points([np.asarray(g[n]["c2w"]) for n in names], scene_size)
-  return _fit(src, dst, with_scaling=False)
+  return fit_transform(src, dst, with_scaling=False)
 
 
 def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
@@ -98,7 +98,7 @@ def pose_errors(est: dict, gt: dict, scene_size: float) -> dict:
   if len(om) >= 3:
     src = np.array([(G @ np.asarray(e[n]["c2w"]))[:3, 3] for n in om])
     dst = np.array([np.asarray(g[n]["c2w"])[:3, 3] for n in om])
-    sim = _fit(src, dst, True)
+    sim = fit_transform(src, dst, True)
     scale = float(np.cbrt(np.linalg.det(sim[:3, :3])))
     summary["om"]["scale_error"] = abs(scale - 1.0)
     summary["om"]["similarity_rot_deg"] = rotation_deg(sim[:3, :3] / scale, np.eye(3))

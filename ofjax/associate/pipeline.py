@@ -2,9 +2,10 @@
 
 Step 1 registers the WLI scans (ofjax.associate.wli) and reconstructs the OM photos with SfM
 (ofjax.associate.sfm); step 2 maps the SfM frame into the WLI um frame with a similarity
-(ofjax.associate.align) and re-poses the photos on the WLI surface (ofjax.associate.ground). The
-result's scene has every camera's c2w in um (OpenCV axes) in the WLI world frame (scan 0, sample
-up), and the OM intrinsics of the SfM camera. Nothing here reads ground truth or writes into the
+(ofjax.associate.align), re-poses the photos on the WLI surface and adjusts photos and SfM points
+together with the points held on it (ofjax.associate.ground). The result's scene has every
+camera's c2w in um (OpenCV axes) in the WLI world frame (scan 0, sample up), and the OM
+intrinsics of the SfM camera. Nothing here reads ground truth or writes into the
 scene directory; the CLI writes once everything succeeded.
 """
 

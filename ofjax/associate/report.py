@@ -5,8 +5,10 @@ om (photos registered, mean reprojection error, P_om size, intrinsics), align (e
 um per SfM unit, fitness, height cost, footprint coverage and turn margin - null when no turned
 solution was scored - of ofjax.associate.align, residual WLI-to-OM distances: distance of every
 aligned P_om point to the nearest P_wli point), ground (photos re-posed on the WLI surface,
-snapped points, rotation change per photo in degrees), seconds. The PNG shows the pair-fitness
-matrix, the residual histogram and a top view of P_wli, the aligned P_om and all cameras.
+snapped points, rotation change per photo in degrees, and the bundle adjustment on the WLI
+surface: keypoints used, photos adjusted, median reprojection error before and after), seconds.
+The PNG shows the pair-fitness matrix, the residual histogram and a top view of P_wli, the
+aligned P_om and all cameras.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ def report_dict(a: Association, min_overlap: float) -> dict:
                 "residual_um": _stats(a.align.residuals_um)},
       "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
                  "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
-                 "change_deg": a.ground.change_deg},
+                 "change_deg": a.ground.change_deg, "adjustment": a.ground.adjustment},
       "seconds": a.seconds,
   }
 

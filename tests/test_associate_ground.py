@@ -1,0 +1,137 @@
+"""ofjax.associate.ground.adjust: the bundle adjustment with points held on the WLI surface.
+
+A known scene is built here: a bumpy height field (the WLI surface, sampled every um with its
+analytic normals), 13 pinhole cameras around it, and points on it seen by every camera where they
+fall in the frame. The adjustment starts from cameras each turned and shifted on its own and from
+points off the surface, with some keypoints mismatched.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from ofjax.associate import evaluate, ground
+
+K = np.array([[700.0, 0, 160], [0, 700.0, 120], [0, 0, 1]])
+SIZE = (320, 240)  # width, height in pixels
+HALF = 150.0  # um: the surface spans [-HALF, HALF]^2
+
+
+def height(x, y):
+  return 12 * np.exp(-((x - 40) ** 2 + (y + 30) ** 2) / 2500) + 6 * np.sin(x / 23) * np.cos(y / 31)
+
+
+def normals(x, y, eps=1e-4):
+  gx = (height(x + eps, y) - height(x - eps, y)) / (2 * eps)
+  gy = (height(x, y + eps) - height(x, y - eps)) / (2 * eps)
+  n = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+  return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def look_at(tilt_deg, azimuth_deg, distance=650.0):
+  """c2w [4, 4] of an OpenCV camera on a sphere around the origin, looking at it."""
+  t, a = np.radians(tilt_deg), np.radians(azimuth_deg)
+  c = distance * np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+  z = -c / np.linalg.norm(c)
+  x = np.cross(z, [np.sin(a + 0.3), -np.cos(a + 0.3), 0.0] if tilt_deg else [0, -1.0, 0])
+  x /= np.linalg.norm(x)
+  m = np.eye(4)
+  m[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+  m[:3, 3] = c
+  return m
+
+
+def scene(rng):
+  xs = np.arange(-HALF, HALF + 1e-9, 1.0)
+  gx, gy = np.meshgrid(xs, xs)
+  wli = np.stack([gx, gy, height(gx, gy)], -1).reshape(-1, 3)
+  wli_n = normals(gx, gy).reshape(-1, 3)
+  cams = {"top": look_at(0, 0)}
+  cams.update({f"r{tilt}-{az}": look_at(tilt, az) for tilt in (20, 35) for az in range(0, 360, 60)})
+  xy = rng.uniform(-0.8 * HALF, 0.8 * HALF, (500, 2))
+  pts = np.column_stack([xy, height(xy[:, 0], xy[:, 1])])
+  obs = {}
+  for name, c2w in cams.items():
+    w2c = np.linalg.inv(c2w)
+    cam_pts = pts @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = cam_pts[:, :2] / cam_pts[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+    inside = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < SIZE[0]) & (uv[:, 1] > 0)
+                            & (uv[:, 1] < SIZE[1]))
+    obs[name] = (uv[inside] + rng.normal(0, 0.1, (len(inside), 2)), inside)
+  return wli, wli_n, cams, pts, obs
+
+
+def perturbed(rng, cams, deg, um):
+  out = {}
+  for name, m in cams.items():
+    m = m.copy()
+    m[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * np.radians(deg) / np.sqrt(3)).as_matrix() @ m[:3, :3]
+    m[:3, 3] += rng.normal(size=3) * um / np.sqrt(3)
+    out[name] = m
+  return out
+
+
+def resected(obs, points):
+  """c2w of every photo re-posed from its keypoints and `points` (pycolmap absolute pose)."""
+  camera = pycolmap.Camera(model="PINHOLE", width=SIZE[0], height=SIZE[1],
+                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+  out = {}
+  for name, (xy, idx) in obs.items():
+    ok = np.all(np.isfinite(points[idx]), axis=1)
+    res = pycolmap.estimate_and_refine_absolute_pose(xy[ok], points[idx[ok]], camera)
+    w2c = np.eye(4)
+    w2c[:3] = res["cam_from_world"].matrix()
+    out[name] = np.linalg.inv(w2c)
+  return out
+
+
+def own_errors(est, true):
+  """Largest rotation (deg) and centre (um) error per camera once the best similarity of the
+  estimated centres onto the true ones is taken out: what each camera has on its own."""
+  names = sorted(true)
+  sim = evaluate.fit_transform(np.array([est[n][:3, 3] for n in names]),
+                               np.array([true[n][:3, 3] for n in names]), True)
+  rot = sim[:3, :3] / np.cbrt(np.linalg.det(sim[:3, :3]))
+  deg = max(evaluate.rotation_deg(rot @ est[n][:3, :3], true[n][:3, :3]) for n in names)
+  um = max(np.linalg.norm(sim[:3, :3] @ est[n][:3, 3] + sim[:3, 3] - true[n][:3, 3]) for n in names)
+  return deg, um
+
+
+def test_adjust_takes_out_each_cameras_own_error_and_keeps_the_common_part():
+  rng = np.random.default_rng(3)
+  wli, wli_n, cams, pts, obs = scene(rng)
+  for name in ("top", "r20-0"):  # mismatched keypoints: 3% of two photos' are 40 px off
+    xy, idx = obs[name]
+    bad = rng.choice(len(idx), max(1, len(idx) * 3 // 100), replace=False)
+    xy[bad] += 40.0
+  tracks = {}
+  for name, (xy, idx) in obs.items():
+    for x, i in zip(xy, idx):
+      tracks.setdefault(int(i), []).append((name, x))
+  # The start is a state like ground_cameras' rounds leave: cameras each off on their own, points
+  # triangulated from them, every camera re-posed from those points (pycolmap), and the points
+  # triangulated again, so that cameras and points agree to a fraction of a pixel.
+  start = perturbed(rng, cams, deg=0.6, um=4.0)
+  start = resected(obs, ground.triangulate(tracks, start, K, len(pts)))
+  start_points = ground.triangulate(tracks, start, K, len(pts))
+  start_points[::50] = np.nan  # points SfM did not keep
+  deg0, um0 = own_errors(start, cams)
+  assert deg0 > 0.5 and um0 > 5.0  # as far off as the synthetic circuit scene's photos
+  out, stats = ground.adjust(start, start_points, obs, K, wli, wli_n, 1.0, cKDTree(wli))
+  deg, um = own_errors(out, cams)
+  assert deg < 0.05 and um < 0.5, (deg, um, deg0, um0, stats)
+  # Keypoint noise is 0.1 px per axis: a median error of 0.118 px through the true cameras.
+  assert stats["reprojection_px"][1] < min(0.13, stats["reprojection_px"][0])
+  # Left out: the mismatched keypoints (0.5%) and those of points SfM did not keep (2%).
+  assert stats["photos"] == 13 and 0.9 < stats["kept"] < 0.99
+  # The common similarity is the start's: the adjusted centres map onto the start's by identity.
+  names = sorted(start)
+  back = evaluate.fit_transform(np.array([out[n][:3, 3] for n in names]),
+                                np.array([start[n][:3, 3] for n in names]), True)
+  np.testing.assert_allclose(back, np.eye(4), atol=1e-6)
+  for m in out.values():  # proper rotations
+    np.testing.assert_allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-9)
+    assert np.isclose(np.linalg.det(m[:3, :3]), 1.0)
