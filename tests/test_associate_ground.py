@@ -68,7 +68,8 @@ def perturbed(rng, cams, deg, um):
   out = {}
   for name, m in cams.items():
     m = m.copy()
-    m[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * np.radians(deg) / np.sqrt(3)).as_matrix() @ m[:3, :3]
+    turn = Rotation.from_rotvec(rng.normal(size=3) * np.radians(deg) / np.sqrt(3))
+    m[:3, :3] = turn.as_matrix() @ m[:3, :3]
     m[:3, 3] += rng.normal(size=3) * um / np.sqrt(3)
     out[name] = m
   return out
@@ -135,3 +136,13 @@ def test_adjust_takes_out_each_cameras_own_error_and_keeps_the_common_part():
   for m in out.values():  # proper rotations
     np.testing.assert_allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-9)
     assert np.isclose(np.linalg.det(m[:3, :3]), 1.0)
+
+
+def test_adjust_leaves_fewer_than_three_photos_as_they_are():
+  rng = np.random.default_rng(4)
+  wli, wli_n, cams, pts, obs = scene(rng)
+  two = {n: cams[n] for n in ("top", "r20-0")}
+  out, stats = ground.adjust(two, pts, obs, K, wli, wli_n, 1.0, cKDTree(wli))
+  assert stats["photos"] == 0 and out.keys() == two.keys()
+  for n in two:
+    np.testing.assert_array_equal(out[n], two[n])

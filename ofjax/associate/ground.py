@@ -102,7 +102,7 @@ def triangulate(tracks: dict[int, list], c2w: dict[str, np.ndarray], K: np.ndarr
 
 def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray,
                                                                                  np.ndarray]:
-  """Pixel coordinates [k, 2] and depths [k] of points X [k, 3] through w2c (R [k, 3, 3], t [k, 3])."""
+  """Pixels [k, 2] and depths [k] of points X [k, 3] through w2c (R [k, 3, 3], t [k, 3])."""
   Y = np.einsum("kij,kj->ki", R, X) + t
   return Y[:, :2] / Y[:, 2:] * np.diag(K)[:2] + K[:2, 2], Y[:, 2]
 
@@ -114,15 +114,15 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   """Bundle adjustment of cameras `c2w` (um) and points [N, 3] (NaN rows allowed) with the points
   held near the WLI surface, mapped back to the common similarity of `c2w` (module docstring)
   -> (adjusted c2w, the Grounding's `adjustment` statistics)."""
-  names = sorted(c2w)
+  unchanged = dict(c2w), {"keypoints": 0, "kept": 0.0, "photos": 0, "reprojection_px": [],
+                          "change_deg": 0.0}
+  names = sorted(n for n in c2w if n in observations and len(observations[n][1]))
+  if len(names) < 3:  # no block to adjust (and no similarity to map it back by)
+    return unchanged
   w2c = np.array([np.linalg.inv(c2w[n]) for n in names])
-  cam, pt, xy = [], [], []
-  for k, name in enumerate(names):
-    if name in observations:
-      cam.append(np.full(len(observations[name][1]), k))
-      xy.append(observations[name][0])
-      pt.append(observations[name][1])
-  cam, pt, xy = np.concatenate(cam), np.concatenate(pt), np.concatenate(xy)
+  cam = np.concatenate([np.full(len(observations[n][1]), k) for k, n in enumerate(names)])
+  xy = np.concatenate([observations[n][0] for n in names])
+  pt = np.concatenate([observations[n][1] for n in names])
   known = np.all(np.isfinite(points[pt]), axis=1)
   uv, depth = _project(w2c[cam, :3, :3], w2c[cam, :3, 3], np.nan_to_num(points[pt]), K)
   error = np.linalg.norm(uv - xy, axis=1)
@@ -133,9 +133,8 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
     use &= np.bincount(cam[use], minlength=len(names))[cam] >= MIN_POINTS
     use &= np.bincount(pt[use], minlength=len(points))[pt] >= 2
   adjusted = np.unique(cam[use])
-  if len(adjusted) < 3:  # no block to adjust (and no similarity to map it back by)
-    return dict(c2w), {"keypoints": 0, "kept": 0.0, "photos": 0, "reprojection_px": [],
-                       "change_deg": 0.0}
+  if len(adjusted) < 3:
+    return unchanged
   before = float(np.median(error[use]))
   names = [names[k] for k in adjusted]
   cam = np.searchsorted(adjusted, cam[use])

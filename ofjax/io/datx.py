@@ -164,8 +164,8 @@ def read_datx(path: str | Path) -> HeightMap:
   with tempfile.TemporaryDirectory(prefix="ofjax-datx-") as tmp:
     out = Path(tmp) / "map.npz"
     # The child imports this very ofjax, wherever the parent found it.
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    paths = [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in paths if p))
     try:
       child = subprocess.run([sys.executable, "-m", "ofjax.io.datx", str(path), str(out)],
                              capture_output=True, text=True, timeout=READ_TIMEOUT_S, env=env)
@@ -175,8 +175,9 @@ def read_datx(path: str | Path) -> HeightMap:
     if child.returncode == 2 and child.stderr.strip():
       raise UserError(child.stderr.strip().splitlines()[-1].removeprefix("ofjax: error: "))
     if child.returncode != 0 or not out.exists():
-      raise UserError(f"{path}: cannot read the .datx file ({_crash_reason(child.returncode, child.stderr)}); "
-                      "check that it is complete (re-copy or re-export it)")
+      reason = _crash_reason(child.returncode, child.stderr)
+      raise UserError(f"{path}: cannot read the .datx file ({reason}); check that it is complete "
+                      "(re-copy or re-export it)")
     with np.load(out) as z:
       height, step = z["height"], tuple(float(v) for v in z["step"])
       meta = json.loads(str(z["meta"]))
