@@ -149,6 +149,8 @@ def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str]:
 
 
 def _crash_reason(returncode: int, stderr: str) -> str:
+  """Why the reading child failed without a UserError: the signal that killed it, else its exit
+  code and last line of stderr (an exception h5py raised outside the reader's own handling)."""
   if returncode < 0:
     try:
       return f"the HDF5 library crashed on it: {signal.Signals(-returncode).name}"
