@@ -144,6 +144,12 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   n_cam, n_pt, n_obs = len(names), len(X), len(cam)
   sigma = ADJUST_SURFACE_SIGMA_VOXELS * wli_voxel_um
   gate = SNAP_GATE_VOXELS * wli_voxel_um
+  # Jacobian sparsity: a keypoint's two rows see its camera's 6 parameters and its point's 3 (the
+  # same every round); a point's surface row sees the point's 3 (the points near P_wli, per round).
+  seen = np.concatenate([np.stack([3 * cam + a, 3 * n_cam + 3 * cam + a, 6 * n_cam + 3 * pt + a],
+                                  1) for a in range(3)], 1)  # [n_obs, 9] columns per keypoint
+  obs_rows = np.repeat(np.arange(2 * n_obs), 9)
+  obs_cols = np.repeat(seen, 2, axis=0).ravel()  # both rows of a keypoint
   for _ in range(ADJUST_ROUNDS):
     d, j = tree.query(X, distance_upper_bound=gate)
     near = np.flatnonzero(np.isfinite(d))  # points with a WLI tangent plane to stay on
@@ -161,15 +167,10 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
       off_surface = np.einsum("ij,ij->i", nrm, Xv[near] - q) / sigma  # [n_near] sigmas
       return np.concatenate([reprojection.ravel(), off_surface])
 
-    # Sparsity: a keypoint's two rows see its camera's 6 parameters and its point's 3; a point's
-    # surface row sees the point's 3.
-    obs_rows = np.repeat(np.arange(2 * n_obs), 9)
-    obs_cols = np.concatenate([np.stack([3 * cam + a, 3 * n_cam + 3 * cam + a,
-                                         6 * n_cam + 3 * pt + a], 1) for a in range(3)], 1)
     surf_rows = 2 * n_obs + np.repeat(np.arange(len(near)), 3)
     surf_cols = (6 * n_cam + 3 * near[:, None] + np.arange(3)).ravel()
     rows = np.concatenate([obs_rows, surf_rows])
-    cols = np.concatenate([np.repeat(obs_cols, 2, axis=0).ravel(), surf_cols])
+    cols = np.concatenate([obs_cols, surf_cols])
     sparsity = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
                           shape=(2 * n_obs + len(near), 6 * n_cam + 3 * n_pt)).tocsr()
     sol = least_squares(residuals, np.zeros(6 * n_cam + 3 * n_pt), jac_sparsity=sparsity,
