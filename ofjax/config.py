@@ -55,6 +55,10 @@ class ModelConfig:
   wli_fit_points: int = 8192  # near-surface queries per fit step (a quarter more in the box)
   wli_fit_offset: float = 0.05  # std of the queries' offsets along the normal (reference units)
   wli_fit_lr: float = 0.01  # the fit's learning rate, cosine-decayed to a tenth
+  # Weight of the fit's point-to-plane distance term (the others weigh 1). 30 puts the fitted
+  # surface 2.3x closer to the WLI on `wing` but leaves a rougher field that trains to a worse
+  # mesh (experiments/README.md), so the fit keeps 1.
+  wli_fit_lambda_distance: float = 1.0
   residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
 
   def __post_init__(self):
@@ -114,6 +118,9 @@ class TrainConfig:
   n_rays: int = 256  # rays per batch (WLI and OM mixed, equal pixel probability)
   modalities: tuple[str, ...] = ("wli", "om")  # which data supervise: the paper's ablations
   wli_share: float = 0.5  # fraction of the rays that are WLI rays when both modalities supervise
+  # Measured WLI points per step, beyond the batch's WLI rays, at which the SDF term at the WLI
+  # points (loss.lambda_wli_surface) is also evaluated: SDF-only queries, no rendering.
+  wli_surface_points: int = 0
   seed: int = 0  # seeds parameter init and ray sampling (sampling is keyed by step)
   log_every: int = 100  # host sync + metrics.jsonl line every k steps
   checkpoint_every: int = 5000  # checkpoint every k steps

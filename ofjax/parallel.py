@@ -33,10 +33,11 @@ def replicated(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, PartitionSpec())
 
 
-def check_divisible(n_rays: int, mesh: Mesh) -> None:
-  """Raises UserError unless the ray batch splits evenly over the mesh (fixed shapes per device)."""
+def check_divisible(n_rays: int, mesh: Mesh, what: str = "--rays") -> None:
+  """Raises UserError unless a batch of n_rays rows (named `what` in the message) splits evenly
+  over the mesh (fixed shapes per device)."""
   if n_rays % mesh.size:
-    raise UserError(f"--rays {n_rays}: must be a multiple of the {mesh.size} devices the ray batch "
+    raise UserError(f"{what} {n_rays}: must be a multiple of the {mesh.size} devices the ray batch "
                     "is split over; choose a multiple")
 
 

@@ -21,9 +21,10 @@ Names (normalised box coordinates):
          normal is no sign there: across a void it belongs to another face, and it left closed
          bubbles inside the sample on two of three seeds of the default scene.)
 Loss per step (B near-surface queries and B / 4 box points):
-  u^2 mean (sdf(q) - delta)^2 + mean |grad sdf(q) - n|^2 + mean (clip(u sdf(r)) - clip(u s))^2
-  + mean (|grad sdf(r)| - 1)^2,
-with u the reference units per normalised unit (train.reference_scale), as the WLI depth loss.
+  lambda u^2 mean (sdf(q) - delta)^2 + mean |grad sdf(q) - n|^2
+  + mean (clip(u sdf(r)) - clip(u s))^2 + mean (|grad sdf(r)| - 1)^2,
+with u the reference units per normalised unit (train.reference_scale), as the WLI depth loss, and
+lambda = ModelConfig.wli_fit_lambda_distance.
 """
 
 from __future__ import annotations
@@ -145,7 +146,9 @@ def fit_losses(geo, params, cloud, key, cfg: Config, unit):
       "far": jnp.sum(far_err**2) / jnp.maximum(jnp.sum(known), 1),
       "eikonal": jnp.mean((fields.safe_norm(grad[b:]) - 1.0) ** 2),
   }
-  return sum(terms.values()), {f"loss/{k}": v for k, v in terms.items()}
+  weights = {"distance": mc.wli_fit_lambda_distance}
+  total = sum(weights.get(k, 1.0) * v for k, v in terms.items())
+  return total, {f"loss/{k}": v for k, v in terms.items()}
 
 
 def fit(params, scene: scene_lib.Scene, norm: scene_lib.Normalization, cfg: Config, unit,

@@ -127,11 +127,17 @@ def _pick(key, n: int, hw):
   return cam, rows, cols
 
 
+# fold_in data of the key that draws train.wli_surface_points.
+SURFACE_POINTS_STREAM = 1
+
+
 def sample_batch(data: TrainData, key, cfg: Config) -> dict[str, jax.Array]:
   """One ray batch: WLI rays first, then OM rays (fixed shapes, keyed by `key`).
 
   Returns [R, ...] arrays: o, d, near, far, rgb (OM target), depth (WLI target), is_wli,
-  wli_ok (WLI ray with a measured depth), om_ok (OM ray whose pixel the box can explain).
+  wli_ok (WLI ray with a measured depth), om_ok (OM ray whose pixel the box can explain); with
+  train.wli_surface_points = S > 0 (and WLI rays), also surface_x [S, 3] further measured WLI
+  points and surface_ok [S] (their pixel is not a void), drawn uniformly over the WLI pixels.
   """
   n_wli, n_om = ray_split(cfg)
   k_w, k_o = jax.random.split(key)
@@ -156,6 +162,13 @@ def sample_batch(data: TrainData, key, cfg: Config) -> dict[str, jax.Array]:
   valid = batch.pop("valid") & hit
   batch.update(near=near, far=far, hit=hit, wli_ok=valid & batch["is_wli"],
                om_ok=valid & ~batch["is_wli"])
+  n_surf = cfg.train.wli_surface_points
+  if n_surf and n_wli:
+    # A key of its own (not a third split), so runs without these points draw as before.
+    cam, r, c = _pick(jax.random.fold_in(key, SURFACE_POINTS_STREAM), n_surf, data.wli_hw)
+    o, d = cameras.orthographic_rays(data.wli_c2w[cam], data.wli_pixel[cam], data.wli_hw[cam], r, c)
+    batch.update(surface_x=o + d * data.wli_depth[cam, r, c][:, None],
+                 surface_ok=data.wli_valid[cam, r, c])
   return batch
 
 
@@ -217,9 +230,13 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
   }
   if lc.lambda_wli_surface and n_wli:  # static: a run without the term compiles without it
     points = batch["o"][:n_wli] + batch["d"][:n_wli] * batch["depth"][:n_wli, None]
+    measured = batch["wli_ok"][:n_wli]
+    if "surface_x" in batch:  # train.wli_surface_points: more measured points, not rendered
+      points = jnp.concatenate([points, batch["surface_x"]], 0)
+      measured = jnp.concatenate([measured, batch["surface_ok"]], 0)
     # The SDF alone, differentiable in params: its spatial gradient is not needed here.
     terms["wli_surface"] = losses.wli_surface(unit * fields.sdf_value(params, points, cfg),
-                                              batch["wli_ok"][:n_wli])
+                                              measured)
   total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
   logs = {f"loss/{k}": v for k, v in terms.items()}
   logs["loss/total"] = total
@@ -238,6 +255,7 @@ def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
   base_key = jax.random.PRNGKey(cfg.train.seed)
   mesh = parallel.batch_mesh(devices)
   parallel.check_divisible(cfg.train.n_rays, mesh)
+  parallel.check_divisible(cfg.train.wli_surface_points, mesh, "train.wli_surface_points")
 
   def step_fn(params, opt_state, data: TrainData, step):
     key = jax.random.fold_in(base_key, step)

@@ -129,3 +129,22 @@ def test_fit_puts_the_zero_level_on_the_wli_points(cap):
   below = um(fields.sdf_value(result.params, jnp.asarray(p - offset * n), cfg))
   assert np.mean(above > 0) > 0.99 and np.mean(below < 0) > 0.99
   assert set(result.losses) == {"loss/distance", "loss/normal", "loss/far", "loss/eikonal"}
+
+
+def test_fit_total_weighs_the_distance_term_by_its_lambda(cap):
+  """The fit's total is lambda_distance * distance + the other three terms, unweighted."""
+  scene, norm = cap
+  data = train.prepare_data(scene, norm)
+  p, n = prefit.oriented_cloud(scene, norm)
+  cloud = tuple(map(jnp.asarray, (p, n, *prefit.box_targets(p, scene, norm, seed=0, count=2048))))
+  unit = train.reference_scale(data, resolve("cpu", **SMALL))
+  for weight in (1.0, 30.0):
+    cfg = resolve("cpu", **{**SMALL, "model": {**SMALL["model"],
+                                               "wli_fit_lambda_distance": weight}})
+    params = fields.init_params(jax.random.PRNGKey(0), cfg, substrate=(data.up, data.level))
+    geo = {k: params[k] for k in ("tables", "sdf")}
+    total, logs = prefit.fit_losses(geo, params, cloud, jax.random.PRNGKey(1), cfg, unit)
+    expect = (weight * logs["loss/distance"] + logs["loss/normal"] + logs["loss/far"]
+              + logs["loss/eikonal"])
+    np.testing.assert_allclose(float(total), float(expect), rtol=1e-6)
+    assert float(logs["loss/distance"]) > 0.0

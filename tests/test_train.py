@@ -52,6 +52,29 @@ def test_batch_rays_reproduce_the_wli_surface(cap):
   assert float(batch["rgb"].max()) <= 1.0
 
 
+def test_surface_points_lie_on_the_wli_surface_and_leave_the_rays_alone(cap):
+  """train.wli_surface_points: S further measured WLI points on the cap (voids flagged), drawn
+  from a key of their own, so the batch's rays are the ones drawn without them."""
+  scene, mesh, norm = cap
+  cfg = resolve("cpu", **SMALL)
+  more = resolve("cpu", **{**SMALL, "train": {**SMALL["train"], "wli_surface_points": 512}})
+  data = train.prepare_data(scene, norm)
+  plain = train.sample_batch(data, jax.random.PRNGKey(0), cfg)
+  batch = train.sample_batch(data, jax.random.PRNGKey(0), more)
+  assert "surface_x" not in plain
+  chex.assert_shape([batch["surface_x"], batch["surface_ok"]], [(512, 3), (512,)])
+  chex.assert_trees_all_equal(plain, {k: batch[k] for k in plain})
+  ok = np.asarray(batch["surface_ok"])
+  assert 0.8 * 512 < ok.sum() < 512  # the scans' voids are flagged, the rest kept
+  p = norm.to_um(np.asarray(batch["surface_x"], np.float64)[ok])
+  rc = o3d.t.geometry.RaycastingScene()
+  rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+  assert rc.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy().max() < 1e-3
+  # The WLI points of 512 draws are not the batch's 64: a different pixel stream.
+  assert not np.allclose(np.asarray(batch["surface_x"][:64]),
+                         np.asarray(batch["o"][:64] + batch["d"][:64] * batch["depth"][:64, None]))
+
+
 @pytest.mark.parametrize("modalities,share,expect", [
     (("wli", "om"), 0.5, (64, 64)), (("wli", "om"), 0.75, (96, 32)), (("wli",), 0.75, (128, 0)),
     (("om",), 0.5, (0, 128))])
@@ -136,6 +159,26 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
   assert "loss/wli_surface" not in without
   np.testing.assert_allclose(float(total), float(without["loss/total"])
                              + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
+
+
+def test_wli_surface_term_also_averages_over_the_extra_surface_points(cap):
+  """With train.wli_surface_points the term is the float64 NumPy mean over the batch's measured
+  WLI points and the measured extra points together."""
+  scene, _, norm = cap
+  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0},
+                **{**SMALL, "train": {**SMALL["train"], "wli_surface_points": 256}})
+  data = train.prepare_data(scene, norm)
+  batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
+  params = fields.init_params(jax.random.PRNGKey(0), cfg)
+  u = 6.5
+  _, logs = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg, unit=u)
+  n_wli = train.ray_split(cfg)[0]
+  b = {k: np.asarray(v, np.float64) for k, v in batch.items()}
+  points = np.concatenate([b["o"][:n_wli] + b["d"][:n_wli] * b["depth"][:n_wli, None],
+                           b["surface_x"]])
+  ok = np.concatenate([b["wli_ok"][:n_wli], b["surface_ok"]]).astype(bool)
+  sdf = np.asarray(fields.sdf_value(params, jnp.asarray(points[ok], jnp.float32), cfg), np.float64)
+  np.testing.assert_allclose(float(logs["loss/wli_surface"]), np.mean((u * sdf) ** 2), rtol=1e-4)
 
 
 def test_step_shapes_and_loss_decrease(cap):
