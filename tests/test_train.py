@@ -20,6 +20,8 @@ from ofjax.errors import UserError
 
 # A small engine for the tiny scene: the cpu preset's architecture with a smaller table and batch.
 SMALL = dict(hash={"log2_table_size": 14}, train={"n_rays": 128, "steps": 60})
+# SMALL without the cpu preset's extra WLI surface points: the batch holds only its rays.
+RAYS_ONLY = {**SMALL, "train": {**SMALL["train"], "wli_surface_points": 0}}
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +58,7 @@ def test_surface_points_lie_on_the_wli_surface_and_leave_the_rays_alone(cap):
   """train.wli_surface_points: S further measured WLI points on the cap (voids flagged), drawn
   from a key of their own, so the batch's rays are the ones drawn without them."""
   scene, mesh, norm = cap
-  cfg = resolve("cpu", **SMALL)
+  cfg = resolve("cpu", **RAYS_ONLY)
   more = resolve("cpu", **{**SMALL, "train": {**SMALL["train"], "wli_surface_points": 512}})
   data = train.prepare_data(scene, norm)
   plain = train.sample_batch(data, jax.random.PRNGKey(0), cfg)
@@ -140,7 +142,7 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
   """loss/wli_surface against a float64 NumPy mean over the batch's measured WLI points (in the
   reference unit), and absent when its weight is 0 (the step then computes what it did before)."""
   scene, _, norm = cap
-  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **SMALL)
+  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **RAYS_ONLY)
   data = train.prepare_data(scene, norm)
   batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
   params = fields.init_params(jax.random.PRNGKey(0), cfg)
@@ -154,7 +156,7 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
   sdf = np.asarray(fields.sdf_value(params, jnp.asarray(points[ok], jnp.float32), cfg), np.float64)
   np.testing.assert_allclose(float(logs["loss/wli_surface"]), np.mean((u * sdf) ** 2), rtol=1e-4)
   _, without = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300,
-                                    resolve("cpu", loss={"lambda_wli_surface": 0.0}, **SMALL),
+                                    resolve("cpu", loss={"lambda_wli_surface": 0.0}, **RAYS_ONLY),
                                     unit=u)
   assert "loss/wli_surface" not in without
   np.testing.assert_allclose(float(total), float(without["loss/total"])
