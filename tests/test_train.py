@@ -138,11 +138,14 @@ def test_losses_are_measured_in_the_reference_unit(cap):
   assert float(scaled["loss/wli"]) > 0
 
 
-def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
+@pytest.mark.parametrize("extra", [0, 256])
+def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap, extra):
   """loss/wli_surface against a float64 NumPy mean over the batch's measured WLI points (in the
-  reference unit), and absent when its weight is 0 (the step then computes what it did before)."""
+  reference unit) and, with train.wli_surface_points, the measured extra points too; absent when
+  its weight is 0 (the step then computes what it did before)."""
   scene, _, norm = cap
-  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **RAYS_ONLY)
+  small = {**SMALL, "train": {**SMALL["train"], "wli_surface_points": extra}}
+  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **small)
   data = train.prepare_data(scene, norm)
   batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
   params = fields.init_params(jax.random.PRNGKey(0), cfg)
@@ -150,37 +153,22 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap):
   total, logs = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg, unit=u)
   n_wli = train.ray_split(cfg)[0]
   b = {k: np.asarray(v, np.float64) for k, v in batch.items()}
-  points = b["o"][:n_wli] + b["d"][:n_wli] * b["depth"][:n_wli, None]
-  ok = b["wli_ok"][:n_wli].astype(bool)
-  assert 0 < ok.sum() < n_wli  # the synthetic scans have voids: the mask matters
+  points = [b["o"][:n_wli] + b["d"][:n_wli] * b["depth"][:n_wli, None]]
+  ok = [b["wli_ok"][:n_wli].astype(bool)]
+  assert 0 < ok[0].sum() < n_wli  # the synthetic scans have voids: the mask matters
+  assert ("surface_x" in b) == (extra > 0)
+  if extra:
+    points.append(b["surface_x"])
+    ok.append(b["surface_ok"].astype(bool))
+  points, ok = np.concatenate(points), np.concatenate(ok)
   sdf = np.asarray(fields.sdf_value(params, jnp.asarray(points[ok], jnp.float32), cfg), np.float64)
   np.testing.assert_allclose(float(logs["loss/wli_surface"]), np.mean((u * sdf) ** 2), rtol=1e-4)
   _, without = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300,
-                                    resolve("cpu", loss={"lambda_wli_surface": 0.0}, **RAYS_ONLY),
+                                    resolve("cpu", loss={"lambda_wli_surface": 0.0}, **small),
                                     unit=u)
   assert "loss/wli_surface" not in without
   np.testing.assert_allclose(float(total), float(without["loss/total"])
                              + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
-
-
-def test_wli_surface_term_also_averages_over_the_extra_surface_points(cap):
-  """With train.wli_surface_points the term is the float64 NumPy mean over the batch's measured
-  WLI points and the measured extra points together."""
-  scene, _, norm = cap
-  cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0},
-                **{**SMALL, "train": {**SMALL["train"], "wli_surface_points": 256}})
-  data = train.prepare_data(scene, norm)
-  batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
-  params = fields.init_params(jax.random.PRNGKey(0), cfg)
-  u = 6.5
-  _, logs = train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg, unit=u)
-  n_wli = train.ray_split(cfg)[0]
-  b = {k: np.asarray(v, np.float64) for k, v in batch.items()}
-  points = np.concatenate([b["o"][:n_wli] + b["d"][:n_wli] * b["depth"][:n_wli, None],
-                           b["surface_x"]])
-  ok = np.concatenate([b["wli_ok"][:n_wli], b["surface_ok"]]).astype(bool)
-  sdf = np.asarray(fields.sdf_value(params, jnp.asarray(points[ok], jnp.float32), cfg), np.float64)
-  np.testing.assert_allclose(float(logs["loss/wli_surface"]), np.mean((u * sdf) ** 2), rtol=1e-4)
 
 
 def test_step_shapes_and_loss_decrease(cap):
