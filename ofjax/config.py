@@ -208,7 +208,7 @@ PRESETS: dict[str, Config] = {
     # a 2^16-entry table cannot hold without collisions anyway) and the SDF term at the WLI
     # points also over 4,096 further measured points per step (SDF-only queries): together
     # 0.84x the fused Chamfer over the five scenes at 600 steps (true poses; 0.530 -> 0.447 um,
-    # every scene lower), -0.2 dB of albedo on average, and 1.2x the steps per second of 16
+    # every scene lower), -0.2 dB of albedo on average, and 1.1-1.2x the steps per second of 16
     # levels without the points (experiments/README.md, benchmarks/README.md).
     "cpu": Config(
         hash=HashConfig(n_levels=12, log2_table_size=16, gather_groups=4),

@@ -20,8 +20,11 @@ from ofjax.errors import UserError
 
 # A small engine for the tiny scene: the cpu preset's architecture with a smaller table and batch.
 SMALL = dict(hash={"log2_table_size": 14}, train={"n_rays": 128, "steps": 60})
-# SMALL without the cpu preset's extra WLI surface points: the batch holds only its rays.
-RAYS_ONLY = {**SMALL, "train": {**SMALL["train"], "wli_surface_points": 0}}
+
+
+def small_with_surface_points(n: int) -> dict:
+  """SMALL with train.wli_surface_points = n (0: the batch holds only its rays)."""
+  return {**SMALL, "train": {**SMALL["train"], "wli_surface_points": n}}
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +61,8 @@ def test_surface_points_lie_on_the_wli_surface_and_leave_the_rays_alone(cap):
   """train.wli_surface_points: S further measured WLI points on the cap (voids flagged), drawn
   from a key of their own, so the batch's rays are the ones drawn without them."""
   scene, mesh, norm = cap
-  cfg = resolve("cpu", **RAYS_ONLY)
-  more = resolve("cpu", **{**SMALL, "train": {**SMALL["train"], "wli_surface_points": 512}})
+  cfg = resolve("cpu", **small_with_surface_points(0))
+  more = resolve("cpu", **small_with_surface_points(512))
   data = train.prepare_data(scene, norm)
   plain = train.sample_batch(data, jax.random.PRNGKey(0), cfg)
   batch = train.sample_batch(data, jax.random.PRNGKey(0), more)
@@ -144,7 +147,7 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap, extra):
   reference unit) and, with train.wli_surface_points, the measured extra points too; absent when
   its weight is 0 (the step then computes what it did before)."""
   scene, _, norm = cap
-  small = {**SMALL, "train": {**SMALL["train"], "wli_surface_points": extra}}
+  small = small_with_surface_points(extra)
   cfg = resolve("cpu", loss={"lambda_wli_surface": 10.0}, **small)
   data = train.prepare_data(scene, norm)
   batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
