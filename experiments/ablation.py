@@ -52,8 +52,11 @@ DEFAULT_SCENE = "seed"
 VARIANTS = ("conventional", "om", "wli", "fused_nores", "fused")
 LABELS = {"conventional": "Conventional (Poisson)", "om": "OM only", "wli": "WLI only",
           "fused_nores": "Fused w/o residual", "fused": "Fused"}
-# OM only starts from the plane: the preset's WLI-fitted init needs WLI rays.
-TRAIN_FLAGS = {"om": ["--modalities", "om", "--set", "model.init_shape=plane"],
+# OM only starts from the plane: the preset's WLI-fitted init needs WLI rays. It keeps the paper's
+# colour weight: the cpu preset's 0.1 weighs the photos against the WLI terms, which OM only lacks,
+# and would there only weaken its one data term against the regularisers.
+TRAIN_FLAGS = {"om": ["--modalities", "om", "--set", "model.init_shape=plane",
+                      "--set", "loss.lambda_color=1.0"],
                "wli": ["--modalities", "wli"],
                "fused_nores": ["--no-residual"], "fused": []}
 POSE_SOURCES = ("associate", "true")
