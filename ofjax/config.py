@@ -177,8 +177,8 @@ class Config:
 
 PRESETS: dict[str, Config] = {
     "paper": Config(),
-    # The cpu preset keeps the paper's architecture and, but for the residual's, its loss weights,
-    # and shrinks what sets the cost per step: a 2^16-entry table (CPU cache), fewer samples per
+    # The cpu preset keeps the paper's architecture and, but for the colour's and the residual's
+    # (and the added SDF term at the WLI points), its loss weights, and shrinks what sets the cost per step: a 2^16-entry table (CPU cache), fewer samples per
     # ray, fewer steps, and a schedule compressed to that step count. Its table gather runs as 4
     # level groups (the scatter-adds of the gradient then share the cores: 1.08x the step on 2
     # cores, measured in benchmarks/README.md). The variance keeps the paper's rate (lr_inv_s
