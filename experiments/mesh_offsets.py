@@ -43,13 +43,6 @@ OCCLUSION_TOL_UM = 0.5
 WLI_STANDOFF_UM = 1.0e4
 
 
-def signed_offsets(gt: MeshQuery, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """(signed [N], |n_z| [N]) of points v [N, 3] against the nearest faces of gt."""
-  near = gt.closest(v)
-  signed = np.einsum("ij,ij->i", v - near["points"], near["normal"])
-  return signed, np.abs(near["normal"][:, 2])
-
-
 def seen_by(gt: MeshQuery, v: np.ndarray, camera: dict) -> np.ndarray:
   """[N] bool: which points v [N, 3] (um) `camera` (a poses.json entry) sees through free space."""
   c2w = np.asarray(camera["c2w"], np.float64)
@@ -79,7 +72,8 @@ def main(argv=None) -> int:
     v = np.asarray(load_mesh(path).vertices)
     v = v[metrics.evaluated_region(v, truth.points, metrics.CROP_MARGIN * truth.diagonal)]
     v = v[np.random.default_rng(0).choice(len(v), min(MAX_VERTICES, len(v)), replace=False)]
-    signed, nz = signed_offsets(gt, v)
+    signed, normal = gt.signed_distance(v)
+    nz = np.abs(normal[:, 2])
     far = np.abs(signed) > args.beyond
     if not far.any():
       print(f"{path}: no vertex beyond {args.beyond} um; median signed {np.median(signed):+.3f} um")

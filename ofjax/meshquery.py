@@ -113,6 +113,20 @@ class MeshQuery:
             "bary": barycentric(r["primitive_uvs"].numpy()),
             "normal": r["primitive_normals"].numpy().astype(np.float64)}
 
+  def signed_distance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances to the mesh along the nearest face's normal.
+
+    Args:
+      points: [N, 3] um.
+    Returns:
+      signed: [N] um, + on the side the nearest face's normal points to (outside a closed mesh
+        wound outward).
+      normal: [N, 3] that face's unit normal.
+    """
+    near = self.closest(points)
+    return np.einsum("ij,ij->i", np.asarray(points, np.float64) - near["points"],
+                     near["normal"]), near["normal"]
+
   def clear(self, origins: np.ndarray, points: np.ndarray, rel_slack: float = 0.0,
             abs_slack: float = 0.0) -> np.ndarray:
     """[N] bool: nothing of the mesh lies between each origin and its point (a line of sight).

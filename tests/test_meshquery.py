@@ -1,4 +1,5 @@
-"""ofjax.meshquery: ray casts, lines of sight and colour interpolation on meshes with closed forms."""
+"""ofjax.meshquery: ray casts, closest points and signed distances, lines of sight and colour
+interpolation on meshes with closed forms."""
 
 import numpy as np
 import pytest
@@ -82,3 +83,19 @@ def test_ray_hits_interpolate_vertex_colours():
   # 8-bit vertex colours of a linear albedo: interpolation is within 0.5/255 of it.
   np.testing.assert_allclose(q.interpolate(vertex_rgb(mesh), face, bary), linear(hit),
                              atol=0.5 / 255 + 1e-6)
+
+
+def test_points_above_a_plane_and_beside_a_box_get_their_signed_distances():
+  plane = trimesh.Trimesh([[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]],
+                          [[0, 1, 2], [0, 2, 3]])  # normal +z
+  rng = np.random.default_rng(1)
+  xy = rng.uniform(-5, 5, (50, 2))
+  z = rng.uniform(-3, 3, 50)
+  signed, normal = MeshQuery.of(plane).signed_distance(np.column_stack([xy, z]))
+  np.testing.assert_allclose(signed, z, atol=1e-5)
+  np.testing.assert_allclose(normal, np.tile([0.0, 0.0, 1.0], (50, 1)), atol=1e-6)
+  box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))  # outward normals
+  pts = np.array([[1.7, 0.1, 0.2], [0.2, -0.3, 0.5], [0.0, 0.0, -1.4]])
+  signed, normal = MeshQuery.of(box).signed_distance(pts)
+  np.testing.assert_allclose(signed, [0.7, -0.5, 0.4], atol=1e-5)
+  np.testing.assert_allclose(normal, [[1, 0, 0], [0, 0, 1], [0, 0, -1]], atol=1e-6)

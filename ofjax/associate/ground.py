@@ -82,6 +82,16 @@ def snap(points: np.ndarray, wli_points: np.ndarray, wli_normals: np.ndarray, tr
   return out
 
 
+def tracks_of(observations: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[int, list]:
+  """Point index -> [(photo name, xy [2])] of every photo that sees it, from observations: photo
+  name -> (xy [k, 2], point index [k]) as ofjax.associate.sfm gives them."""
+  tracks: dict[int, list] = {}
+  for name, (xy, idx) in observations.items():
+    for x, i in zip(xy, idx):
+      tracks.setdefault(int(i), []).append((name, x))
+  return tracks
+
+
 def triangulate(tracks: dict[int, list], c2w: dict[str, np.ndarray], K: np.ndarray,
                 n_points: int) -> np.ndarray:
   """Linear (DLT) triangulation of every track seen by >= 2 posed photos -> [n_points, 3], NaN
@@ -203,10 +213,7 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
   points: [N, 3] P_om in um (after the similarity); observations: photo name -> (xy [k, 2],
   point index [k]) from ofjax.associate.sfm; K: [3, 3]; image_size: (width, height) in pixels.
   """
-  tracks: dict[int, list] = {}
-  for name, (xy, idx) in observations.items():
-    for x, i in zip(xy, idx):
-      tracks.setdefault(int(i), []).append((name, x))
+  tracks = tracks_of(observations)
   camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
   estimation = pycolmap.AbsolutePoseEstimationOptions()
