@@ -15,7 +15,9 @@ On disk (format "ofjax-scene", version 1), a scene directory holds
   scene.json            what is in the bundle: units, source, per-scan pixel size and acquisition
                         prior, per-photo intrinsics and stage prior (both optional),
                         normalisation (optional)
-  wli/<name>.npz        `depth`: [H, W] float32 um along the axis, NaN = void
+  wli/<name>.npz        `depth`: [H, W] float32 um along the axis, NaN = void; optionally
+                        `intensity`: [H, W] float32, the instrument's intensity image on the
+                        same pixels (any linear unit, NaN = not recorded)
   om/<name>.png         RGB photo, 8 or 16 bit
   poses.json            (optional) camera-to-world of every camera; see `poses_to_json`
   ground_truth/         (synthetic scenes only) mesh.ply, surface_points.ply, poses.json
@@ -48,6 +50,9 @@ class WLIScan:
   pixel_size: tuple[float, float]  # (sx, sy): um per pixel along columns and rows
   c2w: np.ndarray | None = None  # [4, 4] float64 camera-to-world in um, None until associated
   prior: dict[str, float] | None = None  # acquisition prior, e.g. {"tilt_deg": 30, "azimuth_deg": 90}
+  # [H, W] float32 intensity image the instrument recorded with the heights, pixel for pixel (any
+  # linear unit, NaN = not recorded), or None; ofjax.associate anchors the photos on its texture.
+  intensity: np.ndarray | None = None
 
   @property
   def valid(self) -> np.ndarray:
@@ -331,7 +336,10 @@ def save_scene(scene: Scene, directory: str | Path, write_poses: bool = False) -
   wli_meta, om_meta = [], []
   for s in scene.wli:
     f = f"wli/{s.name}.npz"
-    fileio.write_npz(directory / f, depth=s.depth.astype(np.float32))
+    arrays = {"depth": s.depth.astype(np.float32)}
+    if s.intensity is not None:
+      arrays["intensity"] = s.intensity.astype(np.float32)
+    fileio.write_npz(directory / f, **arrays)
     wli_meta.append({"name": s.name, "file": f, "shape": list(s.shape),
                      "pixel_size": [float(v) for v in s.pixel_size], "prior": s.prior})
   for o in scene.om:
@@ -385,6 +393,7 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
       try:
         with np.load(f) as z:
           depth = np.asarray(z["depth"], np.float32)
+          intensity = np.asarray(z["intensity"], np.float32) if "intensity" in z.files else None
       except FileNotFoundError:
         raise UserError(f"{f}: WLI file listed in scene.json is missing; restore it") from None
       except Exception as e:  # noqa: BLE001 - numpy raises many kinds on corrupt archives
@@ -395,8 +404,11 @@ def load_scene(directory: str | Path, poses: str | Path | None | bool = None) ->
       if not np.isfinite(depth).any():
         raise UserError(f"{f}: every pixel is a void; replace the file or drop the scan from "
                         "scene.json")
+      if intensity is not None and intensity.shape != depth.shape:
+        raise UserError(f"{f}: intensity image {intensity.shape} and depth map {depth.shape} "
+                        "differ in shape; store both on the same pixels or drop the intensity")
       wli.append(WLIScan(m["name"], depth, numbers(m["pixel_size"], 2, "pixel_size", True),
-                         prior=_prior(m, "scan")))
+                         prior=_prior(m, "scan"), intensity=intensity))
     om = []
     for m in meta["om"]:
       f = directory / m["file"]

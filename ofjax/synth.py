@@ -5,7 +5,9 @@ way OpticFusion's data were taken, by casting rays with open3d's RaycastingScene
   WLI  5 orthographic scans: top, and tilted by 30 deg at azimuths 0, 90, 180, 270 deg; depth is
        exact, and each pixel is dropped (NaN) with the paper's void model: it survives with
        probability f(alpha, beta) (`valid_probability`), alpha the angle between the surface
-       normal and the WLI axis, beta the material's specular share, NA = 0.13.
+       normal and the WLI axis, beta the material's specular share, NA = 0.13. Each scan also
+       carries the instrument's intensity image: the albedo's luminance times the light the
+       surface returns into the objective (`wli_reflectance`).
   OM   37 pinhole photos: top, and rings at 15, 30, 45 deg from the vertical every 30 deg of
        azimuth; narrow field of view; Lambert shading of the albedo under a light beside the
        objective plus a Blinn-Phong highlight whose strength is beta (for the residual branch).
@@ -56,6 +58,7 @@ GRID_GROWTH = 1.3  # outside the sample the substrate grid coarsens by this fact
 VISIBLE_EPS = 1e-5  # relative depth slack when testing a ground-truth point for occlusion
 LAYOUT_WIDTH = 10.0  # OpticFusion's `depth_focal`: layout units across a WLI image
 BACKGROUND = 0.0  # OM pixels that see nothing (cannot happen with the substrate sized as here)
+LUMINANCE = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 weights: a monochrome camera
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +92,23 @@ def valid_probability(alpha_deg, beta, na: float = NA) -> np.ndarray:
   g_diffuse = 1.0 - np.exp(np.minimum(10.0 * (1.0 - x) * t, 0.0)) * x
   g_specular = np.exp(-10.0 * x * np.maximum(t, 0.0)) * (1.0 - x)
   return np.where(alpha < theta, 1.0, np.where(t < 0, g_diffuse, g_specular))
+
+
+def wli_reflectance(alpha_deg, beta, na: float = NA) -> np.ndarray:
+  """[...] light a surface returns into the WLI objective, relative to a level white diffuse one.
+
+  The objective illuminates along its axis and collects within its aperture: the diffuse share
+  (1 - beta) returns as cos(alpha) (Lambert), the specular share beta only while its mirror
+  direction, 2 alpha off the axis, stays inside the aperture's half-angle asin(NA) (a Gaussian
+  fall-off of that width).
+
+  Args:
+    alpha_deg: [...] angle between the surface normal and the WLI axis, degrees.
+    beta: [...] specular share of the surface, in [0, 1].
+  """
+  alpha = np.radians(np.asarray(alpha_deg, np.float64))
+  beta = np.asarray(beta, np.float64)
+  return (1.0 - beta) * np.cos(alpha) + beta * np.exp(-(2.0 * alpha / np.arcsin(na)) ** 2)
 
 
 def void_probability(alpha_deg, beta, na: float = NA) -> np.ndarray:
@@ -284,17 +304,37 @@ def cast(query: MeshQuery, o: np.ndarray, d: np.ndarray
       t).reshape(shape)
 
 
-def render_wli(mesh: SynthMesh, query: MeshQuery, scan: scn.WLIScan, rng: np.random.Generator,
-               na: float = NA) -> np.ndarray:
-  """[H, W] float32 depth (um) of `scan` with voids drawn from the paper's model."""
+def _wli_hits(mesh: SynthMesh, query: MeshQuery, scan: scn.WLIScan):
+  """What each pixel of `scan` sees: its rays' hits (`cast`'s t, face ids, uvs, hit [H, W]),
+  the angle alpha [H, W] (degrees) between the surface normal and the WLI axis, and the ray
+  origins and directions [H, W, 3]."""
   o, d = scn.wli_rays(scan)
   t, ids, uvs, ok = cast(query, o, d)
   n = mesh.normals(ids.ravel(), uvs.reshape(-1, 2)).reshape(d.shape)
   # |cos|: the instrument sees a surface from either side (user meshes may have flipped faces)
   alpha = np.degrees(np.arccos(np.clip(np.abs((n * d).sum(-1)), 0.0, 1.0)))
+  return t, ids, uvs, ok, alpha, o, d
+
+
+def render_wli(mesh: SynthMesh, query: MeshQuery, scan: scn.WLIScan, rng: np.random.Generator,
+               na: float = NA) -> np.ndarray:
+  """[H, W] float32 depth (um) of `scan` with voids drawn from the paper's model."""
+  t, ids, _, ok, alpha, _, _ = _wli_hits(mesh, query, scan)
   p = valid_probability(alpha, mesh.betas[mesh.face_material[ids]], na)
   keep = ok & (rng.random(t.shape) < p)
   return np.where(keep, t, np.nan).astype(np.float32)
+
+
+def render_wli_intensity(mesh: SynthMesh, query: MeshQuery, scan: scn.WLIScan,
+                         na: float = NA) -> np.ndarray:
+  """[H, W] float32 intensity image of `scan` in [0, 1]: the albedo's luminance (Rec. 601) times
+  `wli_reflectance`; recorded at every pixel, voids included (the camera sees them, dimly)."""
+  t, ids, uvs, ok, alpha, o, d = _wli_hits(mesh, query, scan)
+  p = (o + np.where(ok, t, 0.0)[..., None] * d).reshape(-1, 3)
+  luminance = mesh.albedo(p, ids.ravel(), uvs.reshape(-1, 2)) @ LUMINANCE
+  out = luminance.reshape(t.shape) * wli_reflectance(alpha, mesh.betas[mesh.face_material[ids]],
+                                                     na)
+  return np.where(ok, np.clip(out, 0.0, 1.0), BACKGROUND).astype(np.float32)
 
 
 def render_om(mesh: SynthMesh, query: MeshQuery, photo: scn.OMImage) -> np.ndarray:
@@ -368,6 +408,7 @@ def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
   lap("mesh")
   for k, scan in enumerate(wli):
     scan.depth = render_wli(mesh, query, scan, np.random.default_rng([seed, 100, k]))
+    scan.intensity = render_wli_intensity(mesh, query, scan)
   lap("wli")
   for photo in om:
     photo.image = render_om(mesh, query, photo)

@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None) -> int:
   print(f"ofjax: wrote {args.scene_dir / 'poses.json'}: {len(a.scene.wli)} WLI scans, "
         f"{len(a.sfm.c2w)}/{len(scene.om)} OM photos, OM scale {a.align.scale:.5g} um/unit, "
         f"{a.seconds['total']:.1f} s")
+  if a.anchoring is not None:
+    print(f"ofjax: {len(a.anchoring.anchors)}/{len(a.sfm.c2w)} photos anchored on the WLI "
+          "intensity images")
   al = a.align
   if al.turn_source == "priors":
     print(f"ofjax: the OM photos fit the WLI scans about as well turned by "

@@ -39,6 +39,7 @@ from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from ofjax.associate.anchor import MIN_ANCHORED_PHOTOS, Anchoring
 from ofjax.associate.evaluate import fit_transform, rotation_deg
 
 ROUNDS = 3  # snap -> re-pose -> re-triangulate rounds: they take the cameras most of the way
@@ -120,12 +121,20 @@ def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray, K: np.ndarray) -> tupl
 def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
            observations: dict[str, tuple[np.ndarray, np.ndarray]], K: np.ndarray,
            wli_points: np.ndarray, wli_normals: np.ndarray, wli_voxel_um: float,
-           tree: cKDTree) -> tuple[dict[str, np.ndarray], dict]:
+           tree: cKDTree, anchors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+           ) -> tuple[dict[str, np.ndarray], dict]:
   """Bundle adjustment of cameras `c2w` (um) and points [N, 3] (NaN rows allowed) with the points
-  held near the WLI surface, mapped back to the common similarity of `c2w` (module docstring)
-  -> (adjusted c2w, the Grounding's `adjustment` statistics)."""
+  held near the WLI surface -> (adjusted c2w, the Grounding's `adjustment` statistics).
+
+  anchors: photo name -> (xy [k, 2], X [k, 3] um) fixed 3-D points of the WLI that the photo
+  sees at xy (ofjax.associate.anchor); their reprojection errors join the keypoints'. With at
+  least MIN_ANCHORED_PHOTOS anchored photos in the block the anchors fix its common turn and
+  scale; otherwise the result is mapped back to the common similarity of `c2w` (module docstring).
+  """
+  anchors = anchors or {}
   unchanged = dict(c2w), {"keypoints": 0, "kept": 0.0, "photos": 0, "reprojection_px": [],
-                          "change_deg": 0.0}
+                          "change_deg": 0.0, "anchors": 0, "anchored_photos": 0,
+                          "mapped_back": True}
   names = sorted(n for n in c2w if n in observations and len(observations[n][1]))
   if len(names) < 3:  # no block to adjust (and no similarity to map it back by)
     return unchanged
@@ -151,7 +160,12 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   pt, xy = pt[use], xy[use]
   kept_points, pt = np.unique(pt, return_inverse=True)
   R, t, X = w2c[adjusted, :3, :3], w2c[adjusted, :3, 3], points[kept_points]
-  n_cam, n_pt, n_obs = len(names), len(X), len(cam)
+  anchored = [k for k, n in enumerate(names) if n in anchors]
+  a_cam = np.concatenate([np.full(len(anchors[names[k]][0]), k) for k in anchored] + [
+      np.zeros(0, int)])
+  a_xy = np.concatenate([anchors[names[k]][0] for k in anchored] + [np.zeros((0, 2))])
+  a_X = np.concatenate([anchors[names[k]][1] for k in anchored] + [np.zeros((0, 3))])
+  n_cam, n_pt, n_obs, n_anc = len(names), len(X), len(cam), len(a_cam)
   sigma = ADJUST_SURFACE_SIGMA_VOXELS * wli_voxel_um
   gate = SNAP_GATE_VOXELS * wli_voxel_um
   # Jacobian sparsity: a keypoint's two rows see its camera's 6 parameters and its point's 3 (the
@@ -160,6 +174,10 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
                                   1) for a in range(3)], 1)  # [n_obs, 9] columns per keypoint
   obs_rows = np.repeat(np.arange(2 * n_obs), 9)
   obs_cols = np.repeat(seen, 2, axis=0).ravel()  # both rows of a keypoint
+  # An anchor's two rows see only its camera's 6 parameters (its 3-D point is the WLI's, fixed).
+  anc_rows = 2 * n_obs + np.repeat(np.arange(2 * n_anc), 6)
+  anc_cols = np.repeat(np.concatenate([np.stack([3 * a_cam + a, 3 * n_cam + 3 * a_cam + a], 1)
+                                       for a in range(3)], 1), 2, axis=0).ravel()
   for _ in range(ADJUST_ROUNDS):
     d, j = tree.query(X, distance_upper_bound=gate)
     near = np.flatnonzero(np.isfinite(d))  # points with a WLI tangent plane to stay on
@@ -174,15 +192,16 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
     def residuals(v, q=q, nrm=nrm, near=near, unpack=unpack):
       Rv, tv, Xv = unpack(v)
       reprojection = _project(Rv[cam], tv[cam], Xv[pt], K)[0] - xy  # [n_obs, 2] pixels
+      on_anchors = _project(Rv[a_cam], tv[a_cam], a_X, K)[0] - a_xy  # [n_anc, 2] pixels
       off_surface = np.einsum("ij,ij->i", nrm, Xv[near] - q) / sigma  # [n_near] sigmas
-      return np.concatenate([reprojection.ravel(), off_surface])
+      return np.concatenate([reprojection.ravel(), on_anchors.ravel(), off_surface])
 
-    surf_rows = 2 * n_obs + np.repeat(np.arange(len(near)), 3)
+    surf_rows = 2 * (n_obs + n_anc) + np.repeat(np.arange(len(near)), 3)
     surf_cols = (6 * n_cam + 3 * near[:, None] + np.arange(3)).ravel()
-    rows = np.concatenate([obs_rows, surf_rows])
-    cols = np.concatenate([obs_cols, surf_cols])
+    rows = np.concatenate([obs_rows, anc_rows, surf_rows])
+    cols = np.concatenate([obs_cols, anc_cols, surf_cols])
     sparsity = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
-                          shape=(2 * n_obs + len(near), 6 * n_cam + 3 * n_pt)).tocsr()
+                          shape=(2 * (n_obs + n_anc) + len(near), 6 * n_cam + 3 * n_pt)).tocsr()
     sol = least_squares(residuals, np.zeros(6 * n_cam + 3 * n_pt), jac_sparsity=sparsity,
                         loss="soft_l1", f_scale=ADJUST_LOSS_PX, x_scale="jac", method="trf",
                         tr_solver="lsmr", max_nfev=ADJUST_MAX_NFEV)
@@ -190,7 +209,9 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   after = float(np.median(np.linalg.norm(_project(R[cam], t[cam], X[pt], K)[0] - xy, axis=1)))
   start = np.array([c2w[n][:3, 3] for n in names])
   centres = -np.einsum("kji,kj->ki", R, t)  # -R^T t
-  back = fit_transform(centres, start, with_scaling=True)  # the common part back to the start
+  map_back = len(anchored) < MIN_ANCHORED_PHOTOS
+  # Without anchors, the common part goes back to the start (module docstring).
+  back = fit_transform(centres, start, with_scaling=True) if map_back else np.eye(4)
   scale = np.cbrt(np.linalg.det(back[:3, :3]))
   out = dict(c2w)
   for k, name in enumerate(names):
@@ -200,18 +221,25 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
     out[name] = m
   stats = {"keypoints": int(n_obs), "kept": float(use.mean()), "photos": len(names),
            "reprojection_px": [before, after],
-           "change_deg": max(rotation_deg(out[n][:3, :3], c2w[n][:3, :3]) for n in names)}
+           "change_deg": max(rotation_deg(out[n][:3, :3], c2w[n][:3, :3]) for n in names),
+           "anchors": int(n_anc), "anchored_photos": len(anchored), "mapped_back": map_back}
+  if n_anc:
+    stats["anchor_reprojection_px"] = float(np.median(np.linalg.norm(
+        _project(R[a_cam], t[a_cam], a_X, K)[0] - a_xy, axis=1)))
   return out, stats
 
 
 def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
                    observations: dict[str, tuple[np.ndarray, np.ndarray]], K: np.ndarray,
                    image_size: tuple[int, int], wli_points: np.ndarray, wli_normals: np.ndarray,
-                   wli_voxel_um: float) -> Grounding:
+                   wli_voxel_um: float, anchoring: Anchoring | None = None) -> Grounding:
   """Re-poses the photos of `c2w` (step-2 poses, um) on P_wli (module docstring).
 
   points: [N, 3] P_om in um (after the similarity); observations: photo name -> (xy [k, 2],
   point index [k]) from ofjax.associate.sfm; K: [3, 3]; image_size: (width, height) in pixels.
+  anchoring: the photos' anchors on the WLI intensity images (ofjax.associate.anchor), or None;
+  after the rounds an anchored photo starts from its anchors' pose, and the adjustment holds it on
+  its anchors.
   """
   tracks = tracks_of(observations)
   camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
@@ -241,7 +269,10 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
       poses[name] = np.linalg.inv(w2c)
       reposed.add(name)
     points = triangulate(tracks, poses, K, len(points))
+  if anchoring is not None:
+    poses.update({name: m for name, m in anchoring.c2w.items() if name in poses})
+    points = triangulate(tracks, poses, K, len(points))
   poses, adjustment = adjust(poses, points, observations, K, wli_points, wli_normals,
-                             wli_voxel_um, tree)
+                             wli_voxel_um, tree, None if anchoring is None else anchoring.anchors)
   change = {name: rotation_deg(poses[name][:3, :3], c2w[name][:3, :3]) for name in poses}
   return Grounding(poses, sorted(reposed), snapped, change, adjustment)

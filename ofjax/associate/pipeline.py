@@ -3,7 +3,9 @@
 Step 1 registers the WLI scans (ofjax.associate.wli) and reconstructs the OM photos with SfM
 (ofjax.associate.sfm); step 2 maps the SfM frame into the WLI um frame with a similarity
 (ofjax.associate.align), re-poses the photos on the WLI surface and adjusts photos and SfM points
-together with the points held on it (ofjax.associate.ground). The result's scene has every
+together with the points held on it (ofjax.associate.ground); when the scans carry intensity
+images, the photos' SIFT keypoints matched to theirs anchor each photo on exact WLI points
+(ofjax.associate.anchor) and the adjustment holds them there. The result's scene has every
 camera's c2w in um (OpenCV axes) in the WLI world frame (scan 0, sample up), and the OM
 intrinsics of the SfM camera. Nothing here reads ground truth or writes into the
 scene directory; the CLI writes once everything succeeded.
@@ -19,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ofjax import scene as scene_lib
-from ofjax.associate import align, ground, sfm, wli
+from ofjax.associate import align, anchor, ground, sfm, wli
 from ofjax.errors import UserError
 
 
@@ -30,6 +32,7 @@ class Association:
   sfm: sfm.SfMResult
   align: align.Alignment
   ground: ground.Grounding
+  anchoring: anchor.Anchoring | None  # the photos' anchors on the WLI intensity images, if any
   seconds: dict[str, float]  # wall time of "wli", "sfm", "align" (step 2 with re-posing), "total"
 
 
@@ -76,8 +79,11 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
                              min_fitness, scene_dir, turn_hint=stage_hint(scene.om, rec.c2w))
   c2w_um = {name: align.om_c2w_um(c, al.S) for name, c in rec.c2w.items()}
   height, width = scene.om[0].shape
+  anchoring = anchor.anchor_photos(scene.wli, reg.c2w, [o for o in scene.om if o.name in c2w_um],
+                                   rec.K)
   gr = ground.ground_cameras(c2w_um, rec.points @ al.S[:3, :3].T + al.S[:3, 3], rec.observations,
-                             rec.K, (width, height), reg.points, reg.normals, reg.voxel_um)
+                             rec.K, (width, height), reg.points, reg.normals, reg.voxel_um,
+                             anchoring)
   t["align"] = time.perf_counter()
   wli_scans = [dataclasses.replace(s, c2w=c) for s, c in zip(scene.wli, reg.c2w)]
   om = [dataclasses.replace(o, K=rec.K.copy(), c2w=gr.c2w[o.name])
@@ -85,4 +91,4 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
   posed = dataclasses.replace(scene, wli=wli_scans, om=om)
   seconds = {"wli": t["wli"] - t["start"], "sfm": t["sfm"] - t["wli"],
              "align": t["align"] - t["sfm"], "total": t["align"] - t["start"]}
-  return Association(posed, reg, rec, al, gr, seconds)
+  return Association(posed, reg, rec, al, gr, anchoring, seconds)

@@ -6,7 +6,11 @@ um per SfM unit, fitness, height cost, footprint coverage and turn margin - null
 solution was scored - of ofjax.associate.align, residual WLI-to-OM distances: distance of every
 aligned P_om point to the nearest P_wli point), ground (photos re-posed on the WLI surface,
 snapped points, rotation change per photo in degrees, and the bundle adjustment on the WLI
-surface: keypoints used, photos adjusted, median reprojection error before and after), seconds.
+surface: keypoints used, photos adjusted, median reprojection error before and after, anchors
+used and whether the result was mapped back to step 2's similarity), anchor (null when no scan
+carries an intensity image: the photos anchored on the WLI intensity images, keypoints of the
+scans with a 3-D point, matches and anchors per photo, each anchored photo's rotation between its
+anchors' pose and its step-2 pose), seconds.
 The PNG shows the pair-fitness matrix, the residual histogram and a top view of P_wli, the
 aligned P_om and all cameras.
 """
@@ -19,6 +23,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ofjax import fileio, plots
+from ofjax.associate import align
+from ofjax.associate.evaluate import rotation_deg
 from ofjax.associate.pipeline import Association
 
 TOP_VIEW_POINTS = 20_000  # P_wli points drawn in the top view (subsampled for a light PNG)
@@ -61,8 +67,23 @@ def report_dict(a: Association, min_overlap: float) -> dict:
       "ground": {"reposed": len(a.ground.reposed), "snapped_points": a.ground.snapped,
                  "max_change_deg": max(a.ground.change_deg.values(), default=0.0),
                  "change_deg": a.ground.change_deg, "adjustment": a.ground.adjustment},
+      "anchor": _anchor_dict(a),
       "seconds": a.seconds,
   }
+
+
+def _anchor_dict(a: Association) -> dict | None:
+  an = a.anchoring
+  if an is None:
+    return None
+  counts = np.array([len(xy) for xy, _ in an.anchors.values()])
+  step2 = {n: align.om_c2w_um(a.sfm.c2w[n], a.align.S) for n in an.c2w}
+  return {"scans_with_intensity": sum(s.intensity is not None for s in a.scene.wli),
+          "wli_keypoints": an.wli_keypoints, "anchored_photos": len(an.anchors),
+          "matches": an.matches, "anchors": {n: int(len(xy)) for n, (xy, _) in an.anchors.items()},
+          "anchors_per_photo": _stats(counts),
+          "step2_change_deg": _stats(np.array(
+              [rotation_deg(an.c2w[n][:3, :3], step2[n][:3, :3]) for n in an.c2w]))}
 
 
 def figure(a: Association) -> Figure:

@@ -1,0 +1,143 @@
+"""Step 2c: anchor the OM photos on the WLI scans' intensity images, when the scans carry them.
+
+A WLI instrument records an intensity image on the same pixels as each height map. Its texture is
+the sample's, and every pixel of it has an exact 3-D point: the height map posed by step 1. SIFT
+keypoints of those images, lifted to 3-D and matched to each photo's SIFT keypoints, give 2-D-3-D
+correspondences (the photo's *anchors*) that do not pass through the SfM's points. Those points
+are biased where the surface slopes (0.5-1 um inside it on the synthetic scenes, through the true
+cameras; benchmarks/README.md) and a nearly flat sample pins the turn about its normal and the
+scale of P_om only weakly, so step 2's similarity keeps errors that no fit of P_om to P_wli can
+remove. Anchors measure the turn and the scale of every photo directly against the WLI's texture.
+
+Per photo: its keypoints are matched to those of every scan (mutual nearest neighbours in
+descriptor space that pass Lowe's ratio test, scikit-image), then LO-RANSAC absolute pose with
+the intrinsics fixed (pycolmap) keeps the matches consistent with one camera; a photo with at
+least MIN_ANCHORS inliers is anchored, with that pose and those inliers. The bundle adjustment of
+ofjax.associate.ground then holds the anchored photos on their anchors.
+
+Names: `xy` [k, 2] pixel coordinates with pixel centres at +0.5 (COLMAP's and ofjax's
+convention); `X` [k, 3] points in um in the WLI world frame; descriptors [k, 128] uint8 SIFT.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pycolmap
+from scipy import ndimage
+from skimage.feature import match_descriptors
+
+from ofjax import scene as scene_lib
+
+MAX_NUM_FEATURES = 8192  # SIFT keypoints per image (a 1,024 px scan holds more texture than 4,096)
+MATCH_MAX_RATIO = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance
+RANSAC_MAX_ERROR_PX = 2.0  # absolute-pose inlier threshold, pixels
+MIN_ANCHORS = 30  # a photo with fewer pose-consistent matches is not anchored
+MIN_ANCHORED_PHOTOS = 3  # fewer anchored photos cannot fix the OM block's turn and scale
+DEPTH_STEP_PIXELS = 2.0  # a keypoint whose 2 x 2 depth neighbourhood spans more than this many
+# pixel sizes straddles a depth edge (the heights of two surfaces): no 3-D point for it
+INTENSITY_PERCENTILES = (0.5, 99.5)  # the intensity range stretched to [0, 1] for SIFT (any unit)
+LUMINANCE = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601: photo -> grey for SIFT
+
+
+@dataclasses.dataclass
+class Anchoring:
+  anchors: dict[str, tuple[np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2], X [k, 3] um)
+  c2w: dict[str, np.ndarray]  # anchored photo -> [4, 4] camera-to-world from its anchors alone
+  wli_keypoints: int  # scan keypoints with a 3-D point, all scans together
+  matches: dict[str, int]  # photo name -> descriptor matches before the pose's RANSAC
+
+
+def _extractor() -> pycolmap.FeatureExtractor:
+  options = pycolmap.FeatureExtractionOptions()
+  options.sift.max_num_features = MAX_NUM_FEATURES
+  options.num_threads = 1  # the same keypoints in every run
+  return pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
+
+
+def sift(extractor: pycolmap.FeatureExtractor, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """SIFT of a grey image [H, W] in [0, 1] -> (xy [k, 2] float64, descriptors [k, 128] uint8)."""
+  keypoints, descriptors = extractor.extract_from_float32_array(
+      np.ascontiguousarray(grey, np.float32))
+  xy = np.array([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2)
+  return xy, np.asarray(descriptors.data, np.uint8).reshape(len(xy), -1)
+
+
+def stretch(intensity: np.ndarray) -> np.ndarray:
+  """[H, W] intensity in any linear unit (NaN = not recorded) -> [H, W] float32 in [0, 1]."""
+  finite = np.isfinite(intensity)
+  if not finite.any():
+    return np.zeros(intensity.shape, np.float32)
+  lo, hi = np.percentile(intensity[finite], INTENSITY_PERCENTILES)
+  out = (np.where(finite, intensity, lo) - lo) / max(hi - lo, np.finfo(np.float32).tiny)
+  return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def lift(scan: scene_lib.WLIScan, c2w: np.ndarray, xy: np.ndarray) -> np.ndarray:
+  """The 3-D points (um) of a scan's pixel positions xy [k, 2] -> [k, 3], NaN where the depth is
+  a void or straddles a depth edge (bilinear depth from the 2 x 2 pixels around each position)."""
+  h, w = scan.shape
+  col, row = xy[:, 0] - 0.5, xy[:, 1] - 0.5  # pixel index coordinates (centre of pixel 0 at 0)
+  c0 = np.clip(np.floor(col).astype(int), 0, w - 2)
+  r0 = np.clip(np.floor(row).astype(int), 0, h - 2)
+  corners = np.stack([scan.depth[r0 + dr, c0 + dc] for dr in (0, 1) for dc in (0, 1)], -1)
+  span = np.ptp(corners, axis=-1)  # NaN where any corner is a void
+  ok = np.isfinite(span) & (span <= DEPTH_STEP_PIXELS * min(scan.pixel_size))
+  depth = ndimage.map_coordinates(np.nan_to_num(scan.depth.astype(np.float64)), [row, col],
+                                  order=1, mode="nearest")
+  sx, sy = scan.pixel_size
+  local = np.stack([(col + 0.5 - w / 2) * sx, (row + 0.5 - h / 2) * sy, depth], -1)
+  return np.where(ok[:, None], local @ c2w[:3, :3].T + c2w[:3, 3], np.nan)
+
+
+def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
+                  photos: list[scene_lib.OMImage], K: np.ndarray) -> Anchoring | None:
+  """Anchors of every photo on the scans' intensity images (module docstring).
+
+  scans, scan_c2w: the WLI scans and their registered camera-to-world (um); photos: the OM
+  photos; K: [3, 3] their shared intrinsics. Returns None when no scan carries an intensity image
+  or fewer than MIN_ANCHORED_PHOTOS photos could be anchored.
+  """
+  with_intensity = [(s, c) for s, c in zip(scans, scan_c2w) if s.intensity is not None]
+  if not with_intensity:
+    return None
+  extractor = _extractor()
+  points, descriptors = [], []
+  for scan, c2w in with_intensity:
+    xy, desc = sift(extractor, stretch(scan.intensity))
+    X = lift(scan, c2w, xy)
+    ok = np.all(np.isfinite(X), axis=1)
+    points.append(X[ok])
+    descriptors.append(desc[ok])
+  X_wli, D_wli = np.concatenate(points), np.concatenate(descriptors)
+  if len(X_wli) < MIN_ANCHORS:
+    return None
+  estimation = pycolmap.AbsolutePoseEstimationOptions()
+  estimation.ransac.max_error = RANSAC_MAX_ERROR_PX
+  refinement = pycolmap.AbsolutePoseRefinementOptions()
+  refinement.refine_focal_length = False
+  refinement.refine_extra_params = False
+  anchors, c2w_out, matches = {}, {}, {}
+  for photo in photos:
+    h, w = photo.shape
+    camera = pycolmap.Camera(model="PINHOLE", width=w, height=h,
+                             params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    xy, desc = sift(extractor, np.clip(photo.image, 0.0, 1.0) @ LUMINANCE)
+    pairs = match_descriptors(desc.astype(np.float32), D_wli.astype(np.float32),
+                              cross_check=True, max_ratio=MATCH_MAX_RATIO)
+    matches[photo.name] = len(pairs)
+    if len(pairs) < MIN_ANCHORS:
+      continue
+    xy_m, X_m = xy[pairs[:, 0]], X_wli[pairs[:, 1]]
+    res = pycolmap.estimate_and_refine_absolute_pose(xy_m, X_m, camera, estimation, refinement)
+    if res is None or res["num_inliers"] < MIN_ANCHORS:
+      continue
+    inliers = np.asarray(res["inlier_mask"], bool)
+    w2c = np.eye(4)
+    w2c[:3] = res["cam_from_world"].matrix()
+    c2w_out[photo.name] = np.linalg.inv(w2c)
+    anchors[photo.name] = (xy_m[inliers], X_m[inliers])
+  if len(anchors) < MIN_ANCHORED_PHOTOS:
+    return None
+  return Anchoring(anchors, c2w_out, len(X_wli), matches)
