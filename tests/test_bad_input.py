@@ -45,8 +45,8 @@ def _truncate(path):
   path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
 
-def _set_depth(d, depth, name="0001"):
-  np.savez(d / "wli" / f"{name}.npz", depth=depth)
+def _set_depth(d, depth, name="0001", **more):
+  np.savez(d / "wli" / f"{name}.npz", depth=depth, **more)
   return d
 
 
@@ -134,6 +134,9 @@ CASES = {
                   "0001.npz: depth must be a 2-D map"),
     "all-NaN depth": (lambda t: train(_set_depth(_cap(t), np.full((24, 24), np.nan, np.float32))),
                       "0001.npz: every pixel is a void"),
+    "intensity of another shape": (lambda t: train(_set_depth(
+        _cap(t), np.ones((24, 24), np.float32), intensity=np.ones((12, 24), np.float32))),
+                                   "0001.npz: intensity image (12, 24) and depth map (24, 24)"),
     "truncated png": (lambda t: train(_cap_with(t, lambda d: _truncate(d / "om" / "0002.png"))),
                       "0002.png: cannot be read as an image"),
     "empty png": (lambda t: train(_cap_with(t, lambda d: (d / "om" / "0002.png").write_bytes(b""))),

@@ -22,9 +22,13 @@ def _converter(base, step):
 
 
 def write_datx(path, values, unit=b"NanoMeters", steps=(0.8e-6, 0.9e-6), extra=None,
-               lateral=None, metadata=True):
-  """A .datx as Mx lays it out: MetaData links, Data/Surface/<guid> with its attributes."""
+               lateral=None, metadata=True, intensity=None):
+  """A .datx as Mx lays it out: MetaData links, Data/Surface/<guid> with its attributes, and
+  optionally Data/Intensity/<guid> (its "No Data" the surface's)."""
   with h5py.File(path, "w") as f:
+    if intensity is not None:
+      f.create_dataset("Data/Intensity/{INT}", data=intensity).attrs["No Data"] = np.array(
+          [NO_DATA])
     surf = f.create_group("Data/Surface")
     surf.create_dataset(DECOY_KEY, data=np.zeros_like(values))
     ds = surf.create_dataset(SURF_KEY, data=values)
@@ -62,6 +66,21 @@ def test_nanometres_and_converter_steps(tmp_path):
   np.testing.assert_allclose(hm.height, ref, rtol=1e-12, equal_nan=True)
   np.testing.assert_allclose(hm.pixel_size, (0.8, 0.9), rtol=1e-12)
   assert hm.source["surface"] == SURF_KEY and hm.source["reader"] == "h5py"
+
+
+def test_intensity_on_the_same_pixels_is_read_and_other_shapes_left_out(tmp_path):
+  v = _values()
+  light = RNG.uniform(0, 4000, v.shape)
+  light[0, 0] = NO_DATA
+  write_datx(tmp_path / "m.datx", v, intensity=light)
+  hm = wli.read_height_map(tmp_path / "m.datx")
+  np.testing.assert_array_equal(hm.intensity, np.where(light >= NO_DATA, np.nan, light))
+  scan = wli.to_scan("m", hm)
+  assert scan.intensity.dtype == np.float32 and scan.intensity.shape == scan.depth.shape
+  write_datx(tmp_path / "binned.datx", v, intensity=light[::2, ::2])
+  assert wli.read_height_map(tmp_path / "binned.datx").intensity is None
+  write_datx(tmp_path / "none.datx", v)
+  assert wli.read_height_map(tmp_path / "none.datx").intensity is None
 
 
 def test_fringes_use_wavelength_scale_and_obliquity(tmp_path):

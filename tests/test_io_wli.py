@@ -56,6 +56,17 @@ def test_plain_arrays_need_and_use_a_pixel_size(tmp_path, kind):
   assert hm.pixel_size == (0.8, 0.8)
 
 
+def test_npz_intensity_on_the_same_pixels_becomes_the_scans(tmp_path):
+  z = _heights()
+  light = np.linspace(0.0, 1.0, z.size).reshape(z.shape)
+  np.savez(tmp_path / "m.npz", height=z, intensity=light)
+  hm = wli.read_height_map(tmp_path / "m.npz", pixel_size=0.8)
+  np.testing.assert_array_equal(hm.intensity, light)
+  np.testing.assert_array_equal(wli.to_scan("m", hm).intensity, light.astype(np.float32))
+  np.savez(tmp_path / "other.npz", height=z, intensity=light[:, :-1])
+  assert wli.read_height_map(tmp_path / "other.npz", pixel_size=0.8).intensity is None
+
+
 def test_npz_without_a_height_key_is_a_user_error(tmp_path):
   np.savez(tmp_path / "m.npz", a=_heights(), b=_heights())
   with pytest.raises(UserError, match="none named height"):

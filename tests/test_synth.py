@@ -74,6 +74,26 @@ def test_tilted_plane_valid_fraction_follows_the_void_model(beta):
     assert np.mean(np.isfinite(depth)) == pytest.approx(paper_p_valid(alpha, beta), abs=tol), alpha
 
 
+@pytest.mark.parametrize("beta", [0.2, 0.9])
+def test_wli_intensity_of_a_tilted_plane_follows_the_aperture(beta):
+  """A grey plane tilted by alpha under a top scan: luminance 0.5 times the diffuse share's
+  cos(alpha) plus the specular share while its mirror direction (2 alpha) is in the aperture."""
+  scan = scn.WLIScan("top", np.zeros((16, 16), np.float32), (1.0, 1.0),
+                     c2w=synth.pose(synth.view_rotation(0.0, 0.0), np.zeros(3), 500.0))
+  mat = Material("plane", beta, lambda p, part: np.full((len(p), 3), 0.5, np.float32))
+  aperture = np.arcsin(synth.NA)  # half-angle, radians
+  for alpha in (0.0, 3.0, 10.0, 40.0):
+    rot = trimesh.transformations.rotation_matrix(np.radians(alpha), [0, 1, 0])[:3, :3]
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * 400 @ rot.T
+    mesh = synth.SynthMesh(quad, np.array([[0, 1, 2], [0, 2, 3]]), np.zeros(2, int),
+                           np.zeros(2, int), [mat], np.zeros((4, 3)))
+    img = synth.render_wli_intensity(mesh, mesh.query(), scan)
+    a = np.radians(alpha)
+    want = 0.5 * ((1 - beta) * np.cos(a) + beta * np.exp(-(2 * a / aperture) ** 2))
+    assert img.dtype == np.float32 and img.shape == scan.shape
+    np.testing.assert_allclose(img, want, rtol=1e-5)
+
+
 def test_wli_depths_lie_on_the_true_mesh(seed_tiny):
   scene, gt = seed_tiny
   size = gt.meta["size_um"]
@@ -142,6 +162,7 @@ def test_native_layout_round_trips(tmp_path, seed_tiny):
   back = scn.load_scene(tmp_path, poses=tmp_path / "ground_truth" / "poses.json")
   for a, b in zip(back.wli, scene.wli):
     np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_array_equal(a.intensity, b.intensity)
     np.testing.assert_array_equal(a.c2w, b.c2w)
     assert a.prior == b.prior and a.pixel_size == b.pixel_size
   for a, b in zip(back.om, scene.om):

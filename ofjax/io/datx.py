@@ -15,6 +15,8 @@ The structure read (as Zygo Mx writes it):
       "X Converter", "Y Converter"
                               [1] compound (Category, BaseUnit, Parameters): Parameters[1] is the
                               lateral step in BaseUnit (normally "Meters").
+  /Data/Intensity/<key>       (optional) [H, W] the instrument's intensity image, "No Data" as
+                              above; kept when it has the heights' shape (ofjax.io.wli).
   /Attributes/<key>           attributes "...Lateral Resolution:Value" ([1], metres unless
                               "...Lateral Resolution:Unit" says otherwise): the step when the
                               surface has no X/Y converter.
@@ -39,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ofjax.errors import UserError
-from ofjax.io.wli import HeightMap, check_pixel_size, validate_height
+from ofjax.io.wli import HeightMap, check_pixel_size, same_pixels, validate_height
 
 UM_PER_UNIT = {"meters": 1e6, "millimeters": 1e3, "micrometers": 1.0, "microns": 1.0,
                "nanometers": 1e-3, "angstroms": 1e-4, "inches": 25400.0, "mils": 25.4,
@@ -123,8 +125,24 @@ def _lateral_step(f, attrs, path: Path) -> tuple[float, float]:
                   "attribute); re-export the measurement from Mx")
 
 
-def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str]:
-  """(heights in um with NaN voids, (sx, sy) um, height unit, surface key), in this process."""
+def _intensity(f) -> np.ndarray | None:
+  """The first /Data/Intensity image as float64 with NaN where it has no data, or None."""
+  try:
+    group = f["Data"].get("Intensity") if "Data" in f else None
+    if group is None or not hasattr(group, "keys") or len(group) == 0:
+      return None
+    ds = group[next(iter(group.keys()))]
+    arr = np.asarray(ds[()], np.float64)
+    if "No Data" in ds.attrs:
+      arr[arr >= _scalar(ds.attrs["No Data"])] = np.nan
+    return arr
+  except (KeyError, ValueError, TypeError, OSError):
+    return None  # the intensity is optional: a damaged one leaves the heights as they are
+
+
+def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str, np.ndarray | None]:
+  """(heights in um with NaN voids, (sx, sy) um, height unit, surface key, intensity image or
+  None), in this process."""
   import h5py
   try:
     with h5py.File(path, "r") as f:
@@ -136,6 +154,7 @@ def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str]:
       scale = _height_scale(attrs, path)
       unit = _text(attrs["Unit"]) if "Unit" in attrs else "?"
       step = _lateral_step(f, attrs, path)
+      intensity = _intensity(f)
   except UserError:
     raise
   except Exception as e:  # noqa: BLE001 - h5py raises OSError/KeyError/... on damaged files
@@ -145,7 +164,7 @@ def _read_here(path: Path) -> tuple[np.ndarray, tuple[float, float], str, str]:
     raise UserError(f"{path}: surface {key!r} has shape {raw.shape}, not a 2-D map; export a "
                     "single height map")
   raw[raw >= no_data] = np.nan
-  return raw * scale, step, unit, key
+  return raw * scale, step, unit, key, intensity
 
 
 def _crash_reason(returncode: int, stderr: str) -> str:
@@ -183,17 +202,20 @@ def read_datx(path: str | Path) -> HeightMap:
     with np.load(out) as z:
       height, step = z["height"], tuple(float(v) for v in z["step"])
       meta = json.loads(str(z["meta"]))
+      intensity = z["intensity"] if "intensity" in z.files else None
   height = validate_height(path, height)
   return HeightMap(height, step, {"file": str(path), "format": "datx", "reader": "h5py",
-                                  "units": meta["unit"], "surface": meta["key"]})
+                                  "units": meta["unit"], "surface": meta["key"]},
+                   same_pixels(intensity, height))
 
 
 def _child_main(argv: list[str]) -> None:
   """`python -m ofjax.io.datx FILE OUT.npz`: the read that read_datx runs in a child."""
   path, out = Path(argv[0]), Path(argv[1])
-  height, step, unit, key = _read_here(path)
+  height, step, unit, key, intensity = _read_here(path)
+  extra = {} if intensity is None else {"intensity": intensity}
   np.savez(out, height=height, step=np.asarray(step, np.float64),
-           meta=np.asarray(json.dumps({"unit": unit, "key": key})))
+           meta=np.asarray(json.dumps({"unit": unit, "key": key})), **extra)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,11 @@ Readers, picked by the file's content first (magic bytes) and its extension seco
                         (`pixel_size=`, CLI `--pixel-size UM`).
 
 A height map is `HeightMap.height`: [H, W] float64 um, NaN = void; row r, column c is the sample
-at x = c * sx, y = r * sy in the instrument's frame as the file stores it (row 0 first).
+at x = c * sx, y = r * sy in the instrument's frame as the file stores it (row 0 first). Where the
+file also holds the instrument's intensity image on the same pixels (.datx /Data/Intensity, an
+.npz array `intensity`), it is `HeightMap.intensity` ([H, W] float64, NaN = not recorded) and
+becomes the scan's `intensity` (ofjax.associate anchors the photos on it); one of another shape
+is left out.
 
 Height -> depth (`to_scan`): the WLI looks straight down at the sample. ofjax's orthographic camera
 (scene.py) measures `depth` along its viewing axis from its image plane, so the scan becomes
@@ -53,6 +57,21 @@ class HeightMap:
   height: np.ndarray  # [H, W] float64 um, NaN = void
   pixel_size: tuple[float, float]  # (sx, sy) um per pixel along columns and rows
   source: dict[str, Any]  # file, format, units seen in the file
+  intensity: np.ndarray | None = None  # [H, W] float64 intensity image on the same pixels, or None
+
+
+def same_pixels(intensity, height: np.ndarray) -> np.ndarray | None:
+  """The intensity image as [H, W] float64 (non-finite -> NaN) if it is numeric, on the height
+  map's pixels and not empty; else None (the heights are read either way)."""
+  if intensity is None:
+    return None
+  arr = np.asarray(intensity)
+  if arr.shape != height.shape or not (np.issubdtype(arr.dtype, np.floating)
+                                       or np.issubdtype(arr.dtype, np.integer)):
+    return None
+  arr = arr.astype(np.float64)
+  arr[~np.isfinite(arr)] = np.nan
+  return arr if np.isfinite(arr).any() else None
 
 
 def surfalize_extensions() -> tuple[str, ...]:
@@ -132,6 +151,7 @@ def _read_plain(path: Path, kind: str, pixel_size) -> HeightMap:
           raise UserError(f"{path}: holds arrays {keys} but none named "
                           f"{' / '.join(NPZ_HEIGHT_KEYS)}; save the heights as `height`")
         arr = z[key]
+        intensity = z["intensity"] if "intensity" in keys and key != "intensity" else None
   except UserError:
     raise
   except Exception as e:  # noqa: BLE001 - numpy / tifffile raise many kinds on corrupt files
@@ -139,7 +159,8 @@ def _read_plain(path: Path, kind: str, pixel_size) -> HeightMap:
                     "the file is complete") from None
   height = validate_height(path, arr)
   return HeightMap(height, (sx, sy), {"file": str(path), "format": kind, "reader": "numpy",
-                                      "units": "um (assumed)"})
+                                      "units": "um (assumed)"},
+                   same_pixels(intensity if kind == "npz" else None, height))
 
 
 def read_height_map(path: str | Path, pixel_size=None) -> HeightMap:
@@ -175,7 +196,8 @@ def to_scan(name: str, hm: HeightMap) -> WLIScan:
   """The height map as an unposed orthographic WLI scan: depth = datum - height (module doc)."""
   datum = float(np.nanmax(hm.height))
   depth = (datum - hm.height).astype(np.float32)
-  return WLIScan(name, depth, hm.pixel_size, prior={DATUM_KEY: datum})
+  intensity = None if hm.intensity is None else hm.intensity.astype(np.float32)
+  return WLIScan(name, depth, hm.pixel_size, prior={DATUM_KEY: datum}, intensity=intensity)
 
 
 def height_c2w(scan: WLIScan) -> np.ndarray:
