@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+from skimage.feature import match_descriptors
 
 from blocks import MESH_GT, om_images, scene_size, unposed, wli_scans
 from ofjax import scene as scene_lib
@@ -72,6 +73,19 @@ def test_stretch_maps_the_robust_range_to_unit():
   lo, hi = np.nanpercentile(img, anchor.INTENSITY_PERCENTILES)
   np.testing.assert_allclose(out[20, 50], (img[20, 50] - lo) / (hi - lo), rtol=1e-5)
   np.testing.assert_array_equal(anchor.stretch(np.full((8, 8), 3.0)), np.zeros((8, 8)))
+
+
+def test_match_equals_scikit_images_mutual_ratio_matching():
+  rng = np.random.default_rng(1)
+  a = rng.normal(size=(300, 128)).astype(np.float32)
+  b = np.concatenate([a[:150] + rng.normal(0, 0.3, (150, 128)), rng.normal(size=(250, 128))])
+  a /= np.linalg.norm(a, axis=1, keepdims=True)
+  b = (b / np.linalg.norm(b, axis=1, keepdims=True)).astype(np.float32)
+  want = match_descriptors(a, b, cross_check=True, max_ratio=anchor.MATCH_MAX_RATIO)
+  got = anchor.match(a, b)
+  assert 50 < len(got) <= 150  # the test holds real and rejected candidates
+  np.testing.assert_array_equal(got[np.lexsort(got.T[::-1])], want[np.lexsort(want.T[::-1])])
+  assert anchor.match(a, b[:1]).shape == (0, 2)
 
 
 @pytest.fixture(scope="module")
