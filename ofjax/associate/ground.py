@@ -24,6 +24,12 @@ largest camera error (1.23 -> 0.62 degree; centre 3.7% -> 2.0% of the scene size
 after the best common similarity 3.8% -> 0.37%); on the other synthetic scenes, whose rounds had
 converged, nothing changes.
 
+When the photos are anchored on the WLI intensity images (ofjax.associate.anchor: keypoints of the
+photo matched to exact WLI points), each anchored photo starts the adjustment from its anchors'
+pose and their reprojection errors join the residuals. The anchors pin the block's turn and scale
+to the WLI directly, so with at least MIN_ANCHORED_PHOTOS of them nothing is mapped back (circuit:
+0.045 degree, centre 0.16%, scale 0.008%; benchmarks/README.md).
+
 Conventions: c2w are [4, 4] camera-to-world in um (OpenCV axes); points [N, 3] in um; `tracks`
 map a point index to its observations [(photo name, xy [2] pixels)].
 """
