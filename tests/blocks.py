@@ -128,3 +128,12 @@ def scene_size(scans: list[scene_lib.WLIScan]) -> float:
 
 
 MESH_GT = block_mesh().apply_transform(GAUGE)
+
+
+def assert_within_targets(summary: dict) -> None:
+  """Issue 5's targets on an ofjax.associate.evaluate.pose_errors summary of this scene: WLI <=
+  0.05 deg and 0.5 px; OM 37/37, <= 0.2 deg, centre <= 0.5% of the size, scale <= 0.5%."""
+  w, o = summary["wli"], summary["om"]
+  assert w["max_rot_deg"] <= 0.05 and w["max_trans_px"] <= 0.5, w
+  assert o["registered"] == 37 and o["max_rot_deg"] <= 0.2, o
+  assert o["max_centre_rel"] <= 0.005 and o["scale_error"] <= 0.005, o
