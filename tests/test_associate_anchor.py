@@ -9,13 +9,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pycolmap
 import pytest
 from skimage.feature import match_descriptors
 
 from blocks import MESH_GT, assert_within_targets, om_images, scene_size, unposed, wli_scans
 from ofjax import scene as scene_lib
 from ofjax import synth
-from ofjax.associate import anchor, evaluate
+from ofjax.associate import anchor, evaluate, sfm
 from ofjax.associate.__main__ import main as associate_main
 from ofjax.meshquery import MeshQuery
 
@@ -94,6 +95,14 @@ def blocks_with_intensity():
   return scans, om_images(MESH_GT), scene_size(scans)
 
 
+def test_keypoint_scale_is_colmaps():
+  rng = np.random.default_rng(2)
+  shapes = rng.normal(0.0, 3.0, (50, 4))
+  ref = [pycolmap.FeatureKeypoint(x=0.0, y=0.0, a11=a, a12=b, a21=c, a22=d).compute_scale()
+         for a, b, c, d in shapes]
+  np.testing.assert_allclose(sfm.keypoint_scale(shapes), ref, rtol=1e-6)  # COLMAP's float32
+
+
 def test_anchor_photos_recovers_every_photo_from_the_wli_alone(blocks_with_intensity):
   scans, photos, size = blocks_with_intensity
   an = anchor.anchor_photos(scans, [s.c2w for s in scans], photos, photos[0].K)
@@ -105,11 +114,12 @@ def test_anchor_photos_recovers_every_photo_from_the_wli_alone(blocks_with_inten
   centre = max(np.linalg.norm(an.c2w[n][:3, 3] - truth[n][:3, 3]) for n in an.c2w) / size
   assert deg <= 0.2 and centre <= 0.005, (deg, centre)
   # Anchors are exact WLI points (on the true surface) seen where the true camera sees them.
-  xy, X = (np.concatenate(a) for a in zip(*an.anchors.values()))
+  xy, X, scale = (np.concatenate(a) for a in zip(*an.anchors.values()))
+  assert np.all(scale >= 0.5) and np.all(np.isfinite(scale))  # SIFT's smallest blobs are ~0.8 px
   dist = np.abs(MeshQuery(MESH_GT.vertices, MESH_GT.faces).signed_distance(X)[0])
   assert np.median(dist) < PLANE_TOL_UM
   name = photos[0].name
-  xy0, X0 = an.anchors[name]
+  xy0, X0, _ = an.anchors[name]
   u, v, _ = scene_lib.project_pinhole(X0, photos[0].K, truth[name], photos[0].shape)
   assert np.median(np.hypot(u - xy0[:, 0], v - xy0[:, 1])) < 0.5
 

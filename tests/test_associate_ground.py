@@ -60,7 +60,8 @@ def scene(rng):
     uv = cam_pts[:, :2] / cam_pts[:, 2:] * np.diag(K)[:2] + K[:2, 2]
     inside = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < SIZE[0]) & (uv[:, 1] > 0)
                             & (uv[:, 1] < SIZE[1]))
-    obs[name] = (uv[inside] + rng.normal(0, 0.1, (len(inside), 2)), inside)
+    obs[name] = (uv[inside] + rng.normal(0, 0.1, (len(inside), 2)), inside,
+                 np.ones(len(inside)))  # SIFT scale 1 px: one sigma is one pixel
   return wli, wli_n, cams, pts, obs
 
 
@@ -80,7 +81,7 @@ def resected(obs, points):
   camera = pycolmap.Camera(model="PINHOLE", width=SIZE[0], height=SIZE[1],
                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
   out = {}
-  for name, (xy, idx) in obs.items():
+  for name, (xy, idx, _) in obs.items():
     ok = np.all(np.isfinite(points[idx]), axis=1)
     res = pycolmap.estimate_and_refine_absolute_pose(xy[ok], points[idx[ok]], camera)
     w2c = np.eye(4)
@@ -105,11 +106,11 @@ def test_adjust_takes_out_each_cameras_own_error_and_keeps_the_common_part():
   rng = np.random.default_rng(3)
   wli, wli_n, cams, pts, obs = scene(rng)
   for name in ("top", "r20-0"):  # mismatched keypoints: 3% of two photos' are 40 px off
-    xy, idx = obs[name]
+    xy, idx, _ = obs[name]
     bad = rng.choice(len(idx), max(1, len(idx) * 3 // 100), replace=False)
     xy[bad] += 40.0
   tracks = {}
-  for name, (xy, idx) in obs.items():
+  for name, (xy, idx, _) in obs.items():
     for x, i in zip(xy, idx):
       tracks.setdefault(int(i), []).append((name, x))
   # The start is a state like ground_cameras' rounds leave: cameras each off on their own, points
@@ -159,46 +160,72 @@ def anchors_of(rng, cams, n=80, noise_px=0.2):
     uv = cam_pts[:, :2] / cam_pts[:, 2:] * np.diag(K)[:2] + K[:2, 2]
     inside = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < SIZE[0]) & (uv[:, 1] > 0)
                             & (uv[:, 1] < SIZE[1]))[:n]
-    out[name] = (uv[inside] + rng.normal(0, noise_px, (len(inside), 2)), X[inside])
+    out[name] = (uv[inside] + rng.normal(0, noise_px, (len(inside), 2)), X[inside],
+                 np.ones(len(inside)))
   return out
 
 
-def test_adjust_with_anchors_also_takes_out_the_blocks_common_turn_and_scale():
-  """A start whose cameras share a similarity error (0.6 deg about the vertical, 0.8% scale), as
-  step 2 leaves on a flat sample: without anchors the adjustment keeps it (by design), with the
-  photos anchored on exact WLI points it removes it."""
-  rng = np.random.default_rng(5)
+def common_error_start(rng):
+  """The scene with a start whose cameras share a similarity error (0.6 deg about the vertical,
+  0.8% scale), as step 2 leaves on a flat sample, each camera also off on its own; cameras and
+  points brought to agree as in the test above -> (scene, start c2w, start points)."""
   wli, wli_n, cams, pts, obs = scene(rng)
-  tracks = {}
-  for name, (xy, idx) in obs.items():
-    for x, i in zip(xy, idx):
-      tracks.setdefault(int(i), []).append((name, x))
+  tracks = ground.tracks_of(obs)
   common = np.eye(4)
   common[:3, :3] = 1.008 * Rotation.from_euler("z", 0.6, degrees=True).as_matrix()
   common[:3, 3] = (2.0, -1.5, 0.5)
   start = perturbed(rng, {n: common @ m for n, m in cams.items()}, deg=0.3, um=2.0)
   for m in start.values():  # back to proper camera-to-world rotations
     m[:3, :3] /= 1.008
-  # Cameras and points brought to agree, as in the test above (the common error stays in both).
   start = resected(obs, ground.triangulate(tracks, start, K, len(pts)))
   start_points = ground.triangulate(tracks, start, K, len(pts))
+  return (wli, wli_n, cams, pts, obs), start, start_points
 
-  def worst(out):
-    deg = max(evaluate.rotation_deg(out[n][:3, :3], cams[n][:3, :3]) for n in cams)
-    um = max(np.linalg.norm(out[n][:3, 3] - cams[n][:3, 3]) for n in cams)
-    return deg, um
 
+def worst(out, cams):
+  """Largest rotation (deg) and centre (um) error of cameras `out` against `cams`."""
+  deg = max(evaluate.rotation_deg(out[n][:3, :3], cams[n][:3, :3]) for n in cams)
+  um = max(np.linalg.norm(out[n][:3, 3] - cams[n][:3, 3]) for n in cams)
+  return deg, um
+
+
+def test_adjust_with_anchors_also_takes_out_the_blocks_common_turn_and_scale():
+  """Without anchors the adjustment keeps the start's common error (by design), with the photos
+  anchored on exact WLI points it removes it."""
+  rng = np.random.default_rng(5)
+  (wli, wli_n, cams, pts, obs), start, start_points = common_error_start(rng)
   kept, kept_stats = ground.adjust(start, start_points, obs, K, wli, wli_n, 1.0, cKDTree(wli))
   assert kept_stats["mapped_back"] and kept_stats["anchors"] == 0
-  assert worst(kept)[0] > 0.5  # the common turn stays
+  assert worst(kept, cams)[0] > 0.5  # the common turn stays
   anchors = anchors_of(rng, cams)
   out, stats = ground.adjust(start, start_points, obs, K, wli, wli_n, 1.0, cKDTree(wli), anchors)
-  deg, um = worst(out)
+  deg, um = worst(out, cams)
   assert not stats["mapped_back"] and stats["anchored_photos"] == 13
   assert stats["anchors"] == sum(len(a[0]) for a in anchors.values())
   # From 0.63 deg and 9.2 um to within the issue's targets (0.2 deg; 0.5% of the 300 um surface
   # is 1.5 um). What is left (0.045 deg, 0.53 um) is a turn about the surface that a narrow field
   # hardly sees (0.045 deg at 650 um is 0.51 um): 300 anchors per photo leave the same.
-  assert deg < 0.1 and um < 1.0, (deg, um, worst(start))
+  assert deg < 0.1 and um < 1.0, (deg, um, worst(start, cams))
   # Anchor noise is 0.2 px per axis: a median error of ~0.24 px through the true cameras.
   assert stats["anchor_reprojection_px"] < 0.3
+
+
+def test_adjust_weights_each_keypoint_by_its_sift_scale():
+  """Anchors whose position error grows with their SIFT scale, as measured on the synthetic scenes
+  (benchmarks/README.md): half small blobs placed to 0.15 px, half six times wider and placed six
+  times worse. Weighted by their scales, the adjustment gets closer to the truth than with every
+  anchor at one pixel."""
+  rng = np.random.default_rng(6)
+  (wli, wli_n, cams, pts, obs), start, start_points = common_error_start(rng)
+  anchors = {}
+  for name, (xy, X, _) in anchors_of(rng, cams, noise_px=0.0).items():
+    scale = rng.choice([1.0, 6.0], len(xy))
+    anchors[name] = (xy + rng.normal(0, 0.15, xy.shape) * scale[:, None], X, scale)
+  flat = {n: (xy, X, np.ones(len(xy))) for n, (xy, X, _) in anchors.items()}
+  tree = cKDTree(wli)
+  weighted, _ = ground.adjust(start, start_points, obs, K, wli, wli_n, 1.0, tree, anchors)
+  unweighted, _ = ground.adjust(start, start_points, obs, K, wli, wli_n, 1.0, tree, flat)
+  deg, um = worst(weighted, cams)
+  deg_flat, um_flat = worst(unweighted, cams)
+  # Measured: 0.034 deg and 0.38 um against 0.050 deg and 0.57 um.
+  assert deg < 0.8 * deg_flat and um < 0.8 * um_flat, (deg, um, deg_flat, um_flat)

@@ -56,7 +56,7 @@ def scene():
     cam = (pts - c2w[:3, 3]) @ c2w[:3, :3]
     uv = cam[:, :2] / cam[:, 2:] * K[0, 0] + K[:2, 2]
     inside = np.all((uv >= 0) & (uv < SIZE), axis=1)
-    obs[name] = (uv[inside], np.flatnonzero(inside))
+    obs[name] = (uv[inside], np.flatnonzero(inside), np.ones(int(inside.sum())))
   return pts, cams, obs
 
 
@@ -82,10 +82,42 @@ def test_snap_moves_points_onto_the_tangent_plane():
   assert np.max(np.abs(out[ok, 2] - height(out[ok, 0], out[ok, 1]))) < 0.15
 
 
+def test_on_level_faces_keeps_the_tracks_of_level_points():
+  # ridges z = 10 sin(x / 12): level on their crests and troughs, up to 40 deg steep between
+  g = np.arange(-60, 60, 0.5)
+  x, y = np.meshgrid(g, g, indexing="ij")
+  p_wli = np.stack([x.ravel(), y.ravel(), 10 * np.sin(x.ravel() / 12)], 1)
+  n_wli = np.stack([-10 / 12 * np.cos(x.ravel() / 12), np.zeros(x.size), np.ones(x.size)], 1)
+  n_wli /= np.linalg.norm(n_wli, axis=1, keepdims=True)
+  rng = np.random.default_rng(5)
+  xy = rng.uniform(-55, 55, (400, 2))
+  pts = np.column_stack([xy, 10 * np.sin(xy[:, 0] / 12) + rng.normal(0, 0.2, 400)])
+  pts[::40] = np.nan  # points SfM did not keep
+  obs = {name: (rng.uniform(0, 300, (200, 2)), np.sort(rng.choice(400, 200, replace=False)),
+                rng.uniform(0.8, 5.0, 200)) for name in ("a", "b", "c")}
+  tree = cKDTree(p_wli)
+  kept = ground.on_level_faces(obs, pts, n_wli, tree)
+  # float64 reference by a loop: the normal of the nearest WLI sample, |n_z| against LEVEL_NZ
+  level = np.zeros(len(pts), bool)
+  for i, p in enumerate(pts):
+    if np.all(np.isfinite(p)):
+      level[i] = abs(n_wli[np.argmin(np.linalg.norm(p_wli - p, axis=1)), 2]) >= ground.LEVEL_NZ
+  assert 0.3 < level.mean() < 0.8
+  assert kept.keys() == obs.keys()
+  for name, (xy, idx, scale) in obs.items():
+    for got, want in zip(kept[name], (xy, idx, scale)):
+      np.testing.assert_array_equal(got, want[level[idx]])
+  # A photo left with fewer than MIN_POINTS level tracks: every track stays.
+  xy, idx, scale = obs["a"]
+  sloped = np.flatnonzero(~level[idx])
+  few = {**obs, "a": (xy[sloped], idx[sloped], scale[sloped])}
+  assert ground.on_level_faces(few, pts, n_wli, tree) is few
+
+
 def test_triangulate_recovers_points_from_exact_cameras(scene):
   pts, cams, obs = scene
   tracks = {}
-  for name, (xy, idx) in obs.items():
+  for name, (xy, idx, _) in obs.items():
     for x, i in zip(xy, idx):
       tracks.setdefault(int(i), []).append((name, x))
   out = ground.triangulate(tracks, cams, K, len(pts))

@@ -31,6 +31,7 @@ import pycolmap
 from scipy import ndimage
 
 from ofjax import scene as scene_lib
+from ofjax.associate import sfm
 
 MAX_NUM_FEATURES = 8192  # SIFT keypoints per image (a 1,024 px scan holds more texture than 4,096)
 MATCH_MAX_RATIO = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance
@@ -46,7 +47,8 @@ LUMINANCE = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601: photo -> gr
 
 @dataclasses.dataclass
 class Anchoring:
-  anchors: dict[str, tuple[np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2], X [k, 3] um)
+  anchors: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2],
+  # X [k, 3] um, scale [k]: the photo keypoint's SIFT scale in pixels)
   c2w: dict[str, np.ndarray]  # anchored photo -> [4, 4] camera-to-world from its anchors alone
   wli_keypoints: int  # scan keypoints with a 3-D point, all scans together
   matches: dict[str, int]  # photo name -> descriptor matches before the pose's RANSAC
@@ -59,13 +61,17 @@ def _extractor() -> pycolmap.FeatureExtractor:
   return pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
 
 
-def sift(extractor: pycolmap.FeatureExtractor, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """SIFT of a grey image [H, W] in [0, 1] -> (xy [k, 2] float64, desc [k, 128] float32)."""
+def sift(extractor: pycolmap.FeatureExtractor, grey: np.ndarray
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """SIFT of a grey image [H, W] in [0, 1] -> (xy [k, 2] float64, desc [k, 128] float32,
+  scale [k] float64 pixels)."""
   keypoints, descriptors = extractor.extract_from_float32_array(
       np.ascontiguousarray(grey, np.float32))
   desc = np.asarray(descriptors.data, np.float32)
   desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1.0)
-  return np.array([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2), desc
+  rows = np.array([[k.x, k.y, k.a11, k.a12, k.a21, k.a22] for k in keypoints],
+                  np.float64).reshape(-1, 6)
+  return rows[:, :2], desc, sfm.keypoint_scale(rows[:, 2:])
 
 
 def match(desc_a: np.ndarray, desc_b: np.ndarray, max_ratio: float = MATCH_MAX_RATIO
@@ -131,7 +137,7 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
   extractor = _extractor()
   lifted = []  # per scan: (X [k, 3], desc [k, 128]) of its keypoints with a 3-D point
   for scan, c2w in with_intensity:
-    xy, desc = sift(extractor, stretch(scan.intensity))
+    xy, desc, _ = sift(extractor, stretch(scan.intensity))
     X = lift(scan, c2w, xy)
     ok = np.all(np.isfinite(X), axis=1)
     if ok.any():
@@ -149,10 +155,10 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
     h, w = photo.shape
     camera = pycolmap.Camera(model="PINHOLE", width=w, height=h,
                              params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-    xy, desc = sift(extractor, np.clip(photo.image, 0.0, 1.0) @ LUMINANCE)
-    pairs = [(xy[m[:, 0]], X[m[:, 1]]) for X, scan_desc in lifted
+    xy, desc, scale = sift(extractor, np.clip(photo.image, 0.0, 1.0) @ LUMINANCE)
+    pairs = [(xy[m[:, 0]], X[m[:, 1]], scale[m[:, 0]]) for X, scan_desc in lifted
              for m in [match(desc, scan_desc)]]
-    xy_m, X_m = (np.concatenate(a) for a in zip(*pairs))
+    xy_m, X_m, scale_m = (np.concatenate(a) for a in zip(*pairs))
     matches[photo.name] = len(xy_m)
     if len(xy_m) < MIN_ANCHORS:
       continue
@@ -163,7 +169,7 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
     w2c = np.eye(4)
     w2c[:3] = res["cam_from_world"].matrix()
     c2w_out[photo.name] = np.linalg.inv(w2c)
-    anchors[photo.name] = (xy_m[inliers], X_m[inliers])
+    anchors[photo.name] = (xy_m[inliers], X_m[inliers], scale_m[inliers])
   if len(anchors) < MIN_ANCHORED_PHOTOS:
     return None
   return Anchoring(anchors, c2w_out, n_lifted, matches)

@@ -13,9 +13,9 @@ again from the new cameras (linear DLT), and this repeats ROUNDS times.
 Those rounds are coordinate descent (cameras, then points) and converge slowly: on the circuit
 scene the cameras still moved 0.5 degree between rounds 3 and 10. A bundle adjustment then solves
 cameras and points jointly (`adjust`): every photo's 6 pose parameters and every point's position,
-against the reprojection errors of the SfM keypoints (pixels, soft-L1) and each point's distance
-to the tangent plane of its nearest WLI point (one sigma = ADJUST_SURFACE_SIGMA_VOXELS). The WLI
-surface pins the points' heights, and with them each camera's own pose. Along a nearly flat
+against the reprojection errors of the SfM keypoints (one sigma = SIGMA_PX_PER_SCALE times the
+keypoint's SIFT scale, soft-L1) and each point's distance to the tangent plane of its nearest WLI
+point (one sigma = ADJUST_SURFACE_SIGMA_VOXELS). The WLI surface pins the points' heights, and with them each camera's own pose. Along a nearly flat
 surface it pins the block's common turn about the vertical and its scale only weakly, and the
 adjustment is free to drift there. So its result is mapped back by the similarity that takes
 its camera centres onto the rounds' centres: the common part stays what step 2 fitted over all of
@@ -28,7 +28,14 @@ When the photos are anchored on the WLI intensity images (ofjax.associate.anchor
 photo matched to exact WLI points), each anchored photo starts the adjustment from its anchors'
 pose and their reprojection errors join the residuals. The anchors pin the block's turn and scale
 to the WLI directly, so with at least MIN_ANCHORED_PHOTOS of them nothing is mapped back (circuit:
-0.045 degree, centre 0.16%, scale 0.008%; benchmarks/README.md).
+0.047 degree, centre 0.17%, scale 0.003%; benchmarks/README.md).
+
+Two things keep the keypoints' known errors out of the cameras. Each keypoint, SfM track or anchor,
+is weighted by its SIFT scale: a wide blob's matched position is that much less certain (the wing
+scene's anchors through the true cameras: 0.26 px median error at scale ~1, 0.98 px above 3). And
+only the tracks of points on level WLI faces (`on_level_faces`) take part: on sloped faces the OM
+shading moves the keypoints with the view, and the SfM points sit 0.5-1 um inside the surface. On
+wing the two take the largest camera error from 0.21 to 0.14 degree (centre 0.79% -> 0.53%).
 
 Conventions: c2w are [4, 4] camera-to-world in um (OpenCV axes); points [N, 3] in um; `tracks`
 map a point index to its observations [(photo name, xy [2] pixels)].
@@ -53,13 +60,19 @@ ROUNDS = 3  # snap -> re-pose -> re-triangulate rounds: they take the cameras mo
 SNAP_GATE_VOXELS = 3.0  # SfM points farther than this from P_wli (voids, beyond the scans) are
 # not snapped and take no part in re-posing
 MIN_POINTS = 20  # a photo with fewer snapped points keeps its step-2 pose
+LEVEL_NZ = 0.9  # SfM tracks take part only where the WLI surface faces up at least this much
+# (|n_z|; the level class of benchmarks/README.md's SfM point offsets, 25.8 deg from the vertical)
 RANSAC_MAX_ERROR_PX = 2.0  # absolute-pose inlier threshold (SfM keeps points with error <= 1 px)
 ADJUST_MAX_ERROR_PX = 3.0  # keypoints the rounds' cameras miss by more are left out of the
 # adjustment: mismatched tracks (1.1% of circuit's keypoints; 124 px at the 99th percentile even
 # through the true cameras), which would otherwise pull the cameras
 ADJUST_SURFACE_SIGMA_VOXELS = 0.25  # one sigma of a point's distance to the WLI tangent plane,
-# in P_wli voxels, against one pixel of reprojection error
-ADJUST_LOSS_PX = 1.0  # soft-L1 scale of the reprojection errors (pixels)
+# in P_wli voxels
+SIGMA_PX_PER_SCALE = 1.0  # one sigma of a keypoint's reprojection error (SfM track or anchor), in
+# pixels per pixel of its SIFT scale: a blob's matched position is as uncertain as the blob is
+# wide (the wing scene's anchors through the true cameras: median error 0.26 px at scale ~1,
+# 0.98 px at scale > 3; seed 0.14 -> 0.30 px)
+ADJUST_LOSS_SIGMAS = 1.0  # soft-L1 scale of the residuals, in their sigmas
 ADJUST_ROUNDS = 2  # nearest-WLI-point (tangent plane) updates, one least-squares solve each
 ADJUST_MAX_NFEV = 30  # residual evaluations per solve (it converges in ~15-30)
 
@@ -89,14 +102,35 @@ def snap(points: np.ndarray, wli_points: np.ndarray, wli_normals: np.ndarray, tr
   return out
 
 
-def tracks_of(observations: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[int, list]:
-  """Point index -> [(photo name, xy [2])] of every photo that sees it, from observations: photo
-  name -> (xy [k, 2], point index [k]) as ofjax.associate.sfm gives them."""
+Observations = dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2],
+# point index [k], SIFT scale [k] pixels), as ofjax.associate.sfm gives them
+
+
+def tracks_of(observations: Observations) -> dict[int, list]:
+  """Point index -> [(photo name, xy [2])] of every photo that sees it."""
   tracks: dict[int, list] = {}
-  for name, (xy, idx) in observations.items():
+  for name, (xy, idx, _) in observations.items():
     for x, i in zip(xy, idx):
       tracks.setdefault(int(i), []).append((name, x))
   return tracks
+
+
+def on_level_faces(observations: Observations, points: np.ndarray, wli_normals: np.ndarray,
+                   tree: cKDTree) -> Observations:
+  """The observations of the points [N, 3] (um, NaN rows allowed) whose nearest WLI point faces
+  up (|n_z| >= LEVEL_NZ), or all of them when that would leave a photo with fewer than MIN_POINTS.
+
+  SfM points sit inside sloped faces (the OM shading moves their keypoints with the view), while
+  on level faces they lie on the WLI surface; their tracks would pull the cameras towards that
+  bias (benchmarks/README.md, "Association")."""
+  level = np.zeros(len(points), bool)
+  ok = np.all(np.isfinite(points), axis=1)
+  level[ok] = np.abs(wli_normals[tree.query(points[ok])[1], 2]) >= LEVEL_NZ
+  kept = {name: (xy[level[idx]], idx[level[idx]], scale[level[idx]])
+          for name, (xy, idx, scale) in observations.items()}
+  if min((len(idx) for _, idx, _ in kept.values()), default=0) < MIN_POINTS:
+    return observations
+  return kept
 
 
 def triangulate(tracks: dict[int, list], c2w: dict[str, np.ndarray], K: np.ndarray,
@@ -125,15 +159,18 @@ def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray, K: np.ndarray) -> tupl
 
 
 def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
-           observations: dict[str, tuple[np.ndarray, np.ndarray]], K: np.ndarray,
+           observations: Observations, K: np.ndarray,
            wli_points: np.ndarray, wli_normals: np.ndarray, wli_voxel_um: float,
            tree: cKDTree, anchors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
            ) -> tuple[dict[str, np.ndarray], dict]:
   """Bundle adjustment of cameras `c2w` (um) and points [N, 3] (NaN rows allowed) with the points
   held near the WLI surface -> (adjusted c2w, the Grounding's `adjustment` statistics).
 
-  anchors: photo name -> (xy [k, 2], X [k, 3] um) fixed 3-D points of the WLI that the photo
-  sees at xy (ofjax.associate.anchor); their reprojection errors join the keypoints'. With at
+  observations: photo name -> (xy [k, 2], point index [k], SIFT scale [k] pixels), as
+  ofjax.associate.sfm gives them.
+  anchors: photo name -> (xy [k, 2], X [k, 3] um, SIFT scale [k] pixels) fixed 3-D points of the
+  WLI that the photo sees at xy (ofjax.associate.anchor); their reprojection errors join the
+  keypoints', weighted alike by their scales. With at
   least MIN_ANCHORED_PHOTOS anchored photos in the block the anchors fix its common turn and
   scale; otherwise the result is mapped back to the common similarity of `c2w` (module docstring).
   """
@@ -148,6 +185,7 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   cam = np.concatenate([np.full(len(observations[n][1]), k) for k, n in enumerate(names)])
   xy = np.concatenate([observations[n][0] for n in names])
   pt = np.concatenate([observations[n][1] for n in names])
+  o_sigma = SIGMA_PX_PER_SCALE * np.concatenate([observations[n][2] for n in names])
   known = np.all(np.isfinite(points[pt]), axis=1)
   uv, depth = _project(w2c[cam, :3, :3], w2c[cam, :3, 3], np.nan_to_num(points[pt]), K)
   error = np.linalg.norm(uv - xy, axis=1)
@@ -163,7 +201,7 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
   before = float(np.median(error[use]))
   names = [names[k] for k in adjusted]
   cam = np.searchsorted(adjusted, cam[use])
-  pt, xy = pt[use], xy[use]
+  pt, xy, o_sigma = pt[use], xy[use], o_sigma[use]
   kept_points, pt = np.unique(pt, return_inverse=True)
   R, t, X = w2c[adjusted, :3, :3], w2c[adjusted, :3, 3], points[kept_points]
   anchored = [k for k, n in enumerate(names) if n in anchors]
@@ -171,6 +209,8 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
       np.zeros(0, int)])
   a_xy = np.concatenate([anchors[names[k]][0] for k in anchored] + [np.zeros((0, 2))])
   a_X = np.concatenate([anchors[names[k]][1] for k in anchored] + [np.zeros((0, 3))])
+  a_sigma = SIGMA_PX_PER_SCALE * np.concatenate([anchors[names[k]][2] for k in anchored]
+                                                 + [np.zeros(0)])
   n_cam, n_pt, n_obs, n_anc = len(names), len(X), len(cam), len(a_cam)
   sigma = ADJUST_SURFACE_SIGMA_VOXELS * wli_voxel_um
   gate = SNAP_GATE_VOXELS * wli_voxel_um
@@ -197,8 +237,8 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
 
     def residuals(v, q=q, nrm=nrm, near=near, unpack=unpack):
       Rv, tv, Xv = unpack(v)
-      reprojection = _project(Rv[cam], tv[cam], Xv[pt], K)[0] - xy  # [n_obs, 2] pixels
-      on_anchors = _project(Rv[a_cam], tv[a_cam], a_X, K)[0] - a_xy  # [n_anc, 2] pixels
+      reprojection = (_project(Rv[cam], tv[cam], Xv[pt], K)[0] - xy) / o_sigma[:, None]
+      on_anchors = (_project(Rv[a_cam], tv[a_cam], a_X, K)[0] - a_xy) / a_sigma[:, None]
       off_surface = np.einsum("ij,ij->i", nrm, Xv[near] - q) / sigma  # [n_near] sigmas
       return np.concatenate([reprojection.ravel(), on_anchors.ravel(), off_surface])
 
@@ -209,7 +249,7 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
     sparsity = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
                           shape=(2 * (n_obs + n_anc) + len(near), 6 * n_cam + 3 * n_pt)).tocsr()
     sol = least_squares(residuals, np.zeros(6 * n_cam + 3 * n_pt), jac_sparsity=sparsity,
-                        loss="soft_l1", f_scale=ADJUST_LOSS_PX, x_scale="jac", method="trf",
+                        loss="soft_l1", f_scale=ADJUST_LOSS_SIGMAS, x_scale="jac", method="trf",
                         tr_solver="lsmr", max_nfev=ADJUST_MAX_NFEV)
     R, t, X = unpack(sol.x)
   after = float(np.median(np.linalg.norm(_project(R[cam], t[cam], X[pt], K)[0] - xy, axis=1)))
@@ -236,7 +276,7 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
 
 
 def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
-                   observations: dict[str, tuple[np.ndarray, np.ndarray]], K: np.ndarray,
+                   observations: Observations, K: np.ndarray,
                    image_size: tuple[int, int], wli_points: np.ndarray, wli_normals: np.ndarray,
                    wli_voxel_um: float, anchoring: Anchoring | None = None) -> Grounding:
   """Re-poses the photos of `c2w` (step-2 poses, um) on P_wli (module docstring).
@@ -247,6 +287,8 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
   after the rounds an anchored photo starts from its anchors' pose, and the adjustment holds it on
   its anchors.
   """
+  tree = cKDTree(wli_points)
+  observations = on_level_faces(observations, points, wli_normals, tree)
   tracks = tracks_of(observations)
   camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
@@ -255,14 +297,13 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
   refinement = pycolmap.AbsolutePoseRefinementOptions()
   refinement.refine_focal_length = False
   refinement.refine_extra_params = False
-  tree = cKDTree(wli_points)
   gate = SNAP_GATE_VOXELS * wli_voxel_um
   poses, reposed, snapped = dict(c2w), set(), 0
   for _ in range(ROUNDS):
     on_wli = snap(points, wli_points, wli_normals, tree, gate)
     ok = np.all(np.isfinite(on_wli), axis=1)
     snapped = int(ok.sum())
-    for name, (xy, idx) in observations.items():
+    for name, (xy, idx, _) in observations.items():
       use = ok[idx]
       if name not in poses or use.sum() < MIN_POINTS:
         continue

@@ -76,11 +76,11 @@ def _anchor_dict(a: Association) -> dict | None:
   an = a.anchoring
   if an is None:
     return None
-  counts = np.array([len(xy) for xy, _ in an.anchors.values()])
+  counts = np.array([len(xy) for xy, _, _ in an.anchors.values()])
   step2 = {n: align.om_c2w_um(a.sfm.c2w[n], a.align.S) for n in an.c2w}
   return {"scans_with_intensity": sum(s.intensity is not None for s in a.scene.wli),
           "wli_keypoints": an.wli_keypoints, "anchored_photos": len(an.anchors),
-          "matches": an.matches, "anchors": {n: int(len(xy)) for n, (xy, _) in an.anchors.items()},
+          "matches": an.matches, "anchors": {n: len(xy) for n, (xy, _, _) in an.anchors.items()},
           "anchors_per_photo": _stats(counts),
           "step2_change_deg": _stats(np.array(
               [rotation_deg(an.c2w[n][:3, :3], step2[n][:3, :3]) for n in an.c2w]))}

@@ -39,12 +39,21 @@ class SfMResult:
   K: np.ndarray  # [3, 3] shared intrinsics (pixels)
   points: np.ndarray  # [N, 3] P_om: filtered sparse points, SfM frame
   colors: np.ndarray  # [N, 3] uint8 RGB of P_om
-  observations: dict[str, tuple[np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2] pixel
-  # coordinates of its keypoints that belong to P_om, [k] index of each one's point in `points`)
+  observations: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2]
+  # pixel coordinates of its keypoints that belong to P_om, [k] index of each one's point in
+  # `points`, [k] each keypoint's SIFT scale in pixels, `keypoint_scale`)
   missing: list[str]  # photos the reconstruction did not register
   mean_reprojection_error_px: float  # over all points of the reconstruction
   num_points_total: int  # sparse points before filtering
   seconds: float
+
+
+def keypoint_scale(shape: np.ndarray) -> np.ndarray:
+  """SIFT scale in pixels of keypoints with affine shapes [k, 4] (a11, a12, a21, a22, COLMAP's
+  keypoint layout after x, y) -> [k]: the mean length of the shape's two columns, as COLMAP's
+  FeatureKeypoint::ComputeScale."""
+  shape = np.asarray(shape, np.float64).reshape(-1, 4)
+  return 0.5 * (np.hypot(shape[:, 0], shape[:, 2]) + np.hypot(shape[:, 1], shape[:, 3]))
 
 
 def _shared_K(images: list[scene_lib.OMImage], scene_dir: str) -> np.ndarray | None:
@@ -118,12 +127,19 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
       pts.append(p.xyz)
       cols.append(p.color)
   observations = {}
-  for o in images:
-    im = by_name.get(f"{o.name}.png")
-    if im is not None:
-      obs = seen.get(im.image_id, [])
-      xy = np.array([im.points2D[k].xy for k, _ in obs], np.float64).reshape(-1, 2)
-      observations[o.name] = (xy, np.array([i for _, i in obs], np.int64))
+  database = pycolmap.Database.open(db)
+  try:
+    for o in images:
+      im = by_name.get(f"{o.name}.png")
+      if im is not None:
+        obs = seen.get(im.image_id, [])
+        k = np.array([k for k, _ in obs], np.int64)
+        # The database's keypoint rows are the image's points2D, in order (x, y, affine shape).
+        scale = keypoint_scale(np.asarray(database.read_keypoints(im.image_id))[k, 2:6])
+        xy = np.array([im.points2D[j].xy for j in k], np.float64).reshape(-1, 2)
+        observations[o.name] = (xy, np.array([i for _, i in obs], np.int64), scale)
+  finally:
+    database.close()
   log.info("SfM: %d/%d photos, %d points (%d kept), %.1f s", len(c2w), len(images),
            rec.num_points3D(), len(pts), time.perf_counter() - t0)
   return SfMResult(c2w, K_est, np.asarray(pts, np.float64).reshape(-1, 3),
