@@ -109,10 +109,7 @@ def test_adjust_takes_out_each_cameras_own_error_and_keeps_the_common_part():
     xy, idx, _ = obs[name]
     bad = rng.choice(len(idx), max(1, len(idx) * 3 // 100), replace=False)
     xy[bad] += 40.0
-  tracks = {}
-  for name, (xy, idx, _) in obs.items():
-    for x, i in zip(xy, idx):
-      tracks.setdefault(int(i), []).append((name, x))
+  tracks = ground.tracks_of(obs)
   # The start is a state like ground_cameras' rounds leave: cameras each off on their own, points
   # triangulated from them, every camera re-posed from those points (pycolmap), and the points
   # triangulated again, so that cameras and points agree to a fraction of a pixel.

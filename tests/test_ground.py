@@ -116,10 +116,7 @@ def test_on_level_faces_keeps_the_tracks_of_level_points():
 
 def test_triangulate_recovers_points_from_exact_cameras(scene):
   pts, cams, obs = scene
-  tracks = {}
-  for name, (xy, idx, _) in obs.items():
-    for x, i in zip(xy, idx):
-      tracks.setdefault(int(i), []).append((name, x))
+  tracks = ground.tracks_of(obs)
   out = ground.triangulate(tracks, cams, K, len(pts))
   ok = np.all(np.isfinite(out), axis=1)
   assert ok.mean() > 0.9

@@ -15,14 +15,14 @@ scene the cameras still moved 0.5 degree between rounds 3 and 10. A bundle adjus
 cameras and points jointly (`adjust`): every photo's 6 pose parameters and every point's position,
 against the reprojection errors of the SfM keypoints (one sigma = SIGMA_PX_PER_SCALE times the
 keypoint's SIFT scale, soft-L1) and each point's distance to the tangent plane of its nearest WLI
-point (one sigma = ADJUST_SURFACE_SIGMA_VOXELS). The WLI surface pins the points' heights, and with them each camera's own pose. Along a nearly flat
-surface it pins the block's common turn about the vertical and its scale only weakly, and the
-adjustment is free to drift there. So its result is mapped back by the similarity that takes
-its camera centres onto the rounds' centres: the common part stays what step 2 fitted over all of
-P_om, and each camera keeps what the adjustment found for it alone. On circuit this halves the
-largest camera error (1.23 -> 0.62 degree; centre 3.7% -> 2.0% of the scene size; what is left
-after the best common similarity 3.8% -> 0.37%); on the other synthetic scenes, whose rounds had
-converged, nothing changes.
+point (one sigma = ADJUST_SURFACE_SIGMA_VOXELS). The WLI surface pins the points' heights, and
+with them each camera's own pose. Along a nearly flat surface it pins the block's common turn
+about the vertical and its scale only weakly, and the adjustment is free to drift there. So its
+result is mapped back by the similarity that takes its camera centres onto the rounds' centres:
+the common part stays what step 2 fitted over all of P_om, and each camera keeps what the
+adjustment found for it alone. On circuit this halves the largest camera error (1.23 -> 0.62
+degree; centre 3.7% -> 2.0% of the scene size; what is left after the best common similarity
+3.8% -> 0.37%); on the other synthetic scenes, whose rounds had converged, nothing changes.
 
 When the photos are anchored on the WLI intensity images (ofjax.associate.anchor: keypoints of the
 photo matched to exact WLI points), each anchored photo starts the adjustment from its anchors'
@@ -54,6 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from ofjax.associate.anchor import MIN_ANCHORED_PHOTOS, Anchoring
 from ofjax.associate.evaluate import fit_transform, rotation_deg
+from ofjax.associate.sfm import Observations
 
 ROUNDS = 3  # snap -> re-pose -> re-triangulate rounds: they take the cameras most of the way
 # (degrees on circuit); the joint adjustment after them finishes what they converge to slowly
@@ -100,10 +101,6 @@ def snap(points: np.ndarray, wli_points: np.ndarray, wli_normals: np.ndarray, tr
   rows = np.flatnonzero(ok)[hit]
   out[rows] = p - n * np.einsum("ij,ij->i", n, p - q)[:, None]
   return out
-
-
-Observations = dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2],
-# point index [k], SIFT scale [k] pixels), as ofjax.associate.sfm gives them
 
 
 def tracks_of(observations: Observations) -> dict[int, list]:
@@ -161,7 +158,8 @@ def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray, K: np.ndarray) -> tupl
 def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
            observations: Observations, K: np.ndarray,
            wli_points: np.ndarray, wli_normals: np.ndarray, wli_voxel_um: float,
-           tree: cKDTree, anchors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+           tree: cKDTree,
+           anchors: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
            ) -> tuple[dict[str, np.ndarray], dict]:
   """Bundle adjustment of cameras `c2w` (um) and points [N, 3] (NaN rows allowed) with the points
   held near the WLI surface -> (adjusted c2w, the Grounding's `adjustment` statistics).

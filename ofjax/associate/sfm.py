@@ -33,15 +33,18 @@ QUIET_LOG_LEVEL = 1  # glog level while pycolmap runs: warnings and errors only
 SAME_K_RTOL = 1e-6  # photos whose intrinsics differ by more than this do not share one camera
 
 
+Observations = dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2]
+# pixel coordinates of its keypoints, [k] index of each one's point in P_om, [k] each keypoint's
+# SIFT scale in pixels, `keypoint_scale`)
+
+
 @dataclasses.dataclass
 class SfMResult:
   c2w: dict[str, np.ndarray]  # photo name -> [4, 4] camera-to-world, SfM frame
   K: np.ndarray  # [3, 3] shared intrinsics (pixels)
   points: np.ndarray  # [N, 3] P_om: filtered sparse points, SfM frame
   colors: np.ndarray  # [N, 3] uint8 RGB of P_om
-  observations: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2]
-  # pixel coordinates of its keypoints that belong to P_om, [k] index of each one's point in
-  # `points`, [k] each keypoint's SIFT scale in pixels, `keypoint_scale`)
+  observations: Observations  # of the keypoints that belong to P_om
   missing: list[str]  # photos the reconstruction did not register
   mean_reprojection_error_px: float  # over all points of the reconstruction
   num_points_total: int  # sparse points before filtering
@@ -133,10 +136,10 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
       im = by_name.get(f"{o.name}.png")
       if im is not None:
         obs = seen.get(im.image_id, [])
-        k = np.array([k for k, _ in obs], np.int64)
+        kp = np.array([j for j, _ in obs], np.int64)  # the keypoints' indices in the image
         # The database's keypoint rows are the image's points2D, in order (x, y, affine shape).
-        scale = keypoint_scale(np.asarray(database.read_keypoints(im.image_id))[k, 2:6])
-        xy = np.array([im.points2D[j].xy for j in k], np.float64).reshape(-1, 2)
+        scale = keypoint_scale(np.asarray(database.read_keypoints(im.image_id))[kp, 2:6])
+        xy = np.array([im.points2D[j].xy for j in kp], np.float64).reshape(-1, 2)
         observations[o.name] = (xy, np.array([i for _, i in obs], np.int64), scale)
   finally:
     database.close()
