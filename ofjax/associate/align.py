@@ -333,15 +333,15 @@ def _choose_turn(contenders: list, hint: np.ndarray) -> int | None:
 def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray,
                     wli_voxel_um: float, om_forward: np.ndarray, min_fitness: float = 0.3,
                     scene_dir: str = "SCENE_DIR", wli_up=(0.0, 0.0, 1.0),
-                    turn_hint: np.ndarray | None = None) -> Alignment:
+                    turn_hint: np.ndarray | None = None, seed: int = 0) -> Alignment:
   """Similarity alignment of P_om onto P_wli (module docstring).
 
   p_om: [N, 3] SfM frame; p_wli: [M, 3] um; wli_normals: [M, 3] unit normals of P_wli;
   om_forward: [K, 3] the OM cameras' viewing directions in the SfM frame; wli_voxel_um: spacing of
   P_wli; wli_up: [3] the sample's up direction in P_wli's frame; turn_hint: [3, 3] the stage
-  priors' estimate of S's rotation in P_wli's frame (`stage_turn`), or None. A final fitness
-  below `min_fitness` (share of SfM points within POLISH_GATES_VOXELS[-1] of P_wli) is a
-  UserError.
+  priors' estimate of S's rotation in P_wli's frame (`stage_turn`), or None; seed: the global
+  registration's RANSAC. A final fitness below `min_fitness` (share of SfM points within
+  POLISH_GATES_VOXELS[-1] of P_wli) is a UserError.
   """
   if len(p_om) < 10:
     raise UserError(f"{scene_dir}/om: structure-from-motion left only {len(p_om)} reliable points; "
@@ -365,7 +365,7 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   # Turns: about up from the cameras, and the FPFH one (x_um = g (s0 (x - c_om)) + c_wli).
   src_n = register.downsample(register.to_cloud((p_om - c_om) * s0), gv)
   tgt_n = register.downsample(register.to_cloud(p_wli - c_wli), gv)
-  turns = [("fpfh", np.asarray(register.global_register(src_n, tgt_n, gv).transformation)[:3, :3])]
+  turns = [("fpfh", np.asarray(register.global_register(src_n, tgt_n, gv, seed).transformation)[:3, :3])]
   up = _rot_to_z(-np.mean(om_forward, axis=0))
   turns += [("cameras", _rz(2 * np.pi * k / YAW_STEPS) @ up) for k in range(YAW_STEPS)]
   coarse_gates = [f * r_wli for f in SEED_GATES_SPREADS] + [SEED_GATE_VOXELS * gv]

@@ -124,11 +124,12 @@ def lift(scan: scene_lib.WLIScan, c2w: np.ndarray, xy: np.ndarray) -> np.ndarray
 
 
 def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
-                  photos: list[scene_lib.OMImage], K: np.ndarray) -> Anchoring | None:
+                  photos: list[scene_lib.OMImage], K: np.ndarray, seed: int = 0
+                  ) -> Anchoring | None:
   """Anchors of every photo on the scans' intensity images (module docstring).
 
   scans, scan_c2w: the WLI scans and their registered camera-to-world (um); photos: the OM
-  photos; K: [3, 3] their shared intrinsics. Returns None when no scan carries an intensity image
+  photos; K: [3, 3] their shared intrinsics; seed: the poses' RANSAC (`sfm.absolute_pose`). Returns None when no scan carries an intensity image
   or fewer than MIN_ANCHORED_PHOTOS photos could be anchored.
   """
   with_intensity = [(s, c) for s, c in zip(scans, scan_c2w) if s.intensity is not None]
@@ -145,16 +146,8 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
   n_lifted = sum(len(X) for X, _ in lifted)
   if n_lifted < MIN_ANCHORS:
     return None
-  estimation = pycolmap.AbsolutePoseEstimationOptions()
-  estimation.ransac.max_error = RANSAC_MAX_ERROR_PX
-  refinement = pycolmap.AbsolutePoseRefinementOptions()
-  refinement.refine_focal_length = False
-  refinement.refine_extra_params = False
   anchors, c2w_out, matches = {}, {}, {}
   for photo in photos:
-    h, w = photo.shape
-    camera = pycolmap.Camera(model="PINHOLE", width=w, height=h,
-                             params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     xy, desc, scale = sift(extractor, np.clip(photo.image, 0.0, 1.0) @ LUMINANCE)
     pairs = [(xy[m[:, 0]], X[m[:, 1]], scale[m[:, 0]]) for X, scan_desc in lifted
              for m in [match(desc, scan_desc)]]
@@ -162,13 +155,10 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
     matches[photo.name] = len(xy_m)
     if len(xy_m) < MIN_ANCHORS:
       continue
-    res = pycolmap.estimate_and_refine_absolute_pose(xy_m, X_m, camera, estimation, refinement)
-    if res is None or res["num_inliers"] < MIN_ANCHORS:
+    found = sfm.absolute_pose(xy_m, X_m, K, photo.shape[::-1], RANSAC_MAX_ERROR_PX, seed)
+    if found is None or found[1].sum() < MIN_ANCHORS:
       continue
-    inliers = np.asarray(res["inlier_mask"], bool)
-    w2c = np.eye(4)
-    w2c[:3] = res["cam_from_world"].matrix()
-    c2w_out[photo.name] = np.linalg.inv(w2c)
+    c2w_out[photo.name], inliers = found
     anchors[photo.name] = (xy_m[inliers], X_m[inliers], scale_m[inliers])
   if len(anchors) < MIN_ANCHORED_PHOTOS:
     return None

@@ -46,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pycolmap
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
@@ -54,7 +53,7 @@ from scipy.spatial.transform import Rotation
 
 from ofjax.associate.anchor import MIN_ANCHORED_PHOTOS, Anchoring
 from ofjax.associate.evaluate import fit_transform, rotation_deg
-from ofjax.associate.sfm import Observations
+from ofjax.associate.sfm import Observations, absolute_pose
 
 ROUNDS = 3  # snap -> re-pose -> re-triangulate rounds: they take the cameras most of the way
 # (degrees on circuit); the joint adjustment after them finishes what they converge to slowly
@@ -276,25 +275,19 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
 def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
                    observations: Observations, K: np.ndarray,
                    image_size: tuple[int, int], wli_points: np.ndarray, wli_normals: np.ndarray,
-                   wli_voxel_um: float, anchoring: Anchoring | None = None) -> Grounding:
+                   wli_voxel_um: float, anchoring: Anchoring | None = None, seed: int = 0
+                   ) -> Grounding:
   """Re-poses the photos of `c2w` (step-2 poses, um) on P_wli (module docstring).
 
-  points: [N, 3] P_om in um (after the similarity); observations: photo name -> (xy [k, 2],
-  point index [k]) from ofjax.associate.sfm; K: [3, 3]; image_size: (width, height) in pixels.
+  points: [N, 3] P_om in um (after the similarity); observations: the photos' keypoints and their
+  points (`sfm.Observations`); K: [3, 3]; image_size: (width, height) in pixels.
   anchoring: the photos' anchors on the WLI intensity images (ofjax.associate.anchor), or None;
   after the rounds an anchored photo starts from its anchors' pose, and the adjustment holds it on
-  its anchors.
+  its anchors. seed: the re-posing's RANSAC (`sfm.absolute_pose`).
   """
   tree = cKDTree(wli_points)
   observations = on_level_faces(observations, points, wli_normals, tree)
   tracks = tracks_of(observations)
-  camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-  estimation = pycolmap.AbsolutePoseEstimationOptions()
-  estimation.ransac.max_error = RANSAC_MAX_ERROR_PX
-  refinement = pycolmap.AbsolutePoseRefinementOptions()
-  refinement.refine_focal_length = False
-  refinement.refine_extra_params = False
   gate = SNAP_GATE_VOXELS * wli_voxel_um
   poses, reposed, snapped = dict(c2w), set(), 0
   for _ in range(ROUNDS):
@@ -305,13 +298,10 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
       use = ok[idx]
       if name not in poses or use.sum() < MIN_POINTS:
         continue
-      res = pycolmap.estimate_and_refine_absolute_pose(xy[use], on_wli[idx[use]], camera,
-                                                       estimation, refinement)
-      if res is None or res["num_inliers"] < MIN_POINTS:
+      found = absolute_pose(xy[use], on_wli[idx[use]], K, image_size, RANSAC_MAX_ERROR_PX, seed)
+      if found is None or found[1].sum() < MIN_POINTS:
         continue
-      w2c = np.eye(4)
-      w2c[:3] = res["cam_from_world"].matrix()
-      poses[name] = np.linalg.inv(w2c)
+      poses[name] = found[0]
       reposed.add(name)
     points = triangulate(tracks, poses, K, len(points))
   if anchoring is not None:

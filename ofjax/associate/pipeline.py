@@ -56,11 +56,13 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
 
   min_overlap: ICP fitness for two scans to count as overlapping. min_fitness: share of SfM points
   that must land on the WLI surface. min_registered: share of OM photos SfM must register (the
-  default 1.0 needs all: a photo without a pose cannot be trained on). `workdir` keeps pycolmap's
-  files (default: a temporary directory, removed afterwards).
+  default 1.0 needs all: a photo without a pose cannot be trained on). seed: every random stage's
+  (the RANSACs of registration, SfM, alignment, anchors and re-posing, and the SfM mapper): the
+  same scene and seed give the same poses. `workdir` keeps pycolmap's files (default: a temporary
+  directory, removed afterwards).
   """
   t = {"start": time.perf_counter()}
-  reg = wli.register_scans(scene.wli, min_overlap, scene_dir)
+  reg = wli.register_scans(scene.wli, min_overlap, scene_dir, seed)
   t["wli"] = time.perf_counter()
   if workdir is None:
     with tempfile.TemporaryDirectory(prefix="ofjax-sfm-") as tmp:
@@ -76,14 +78,15 @@ def associate(scene: scene_lib.Scene, workdir: str | Path | None = None, min_ove
                     "retake them with more overlap")
   forward = np.array([c[:3, 2] for c in rec.c2w.values()])
   al = align.align_om_to_wli(rec.points, reg.points, reg.normals, reg.voxel_um, forward,
-                             min_fitness, scene_dir, turn_hint=stage_hint(scene.om, rec.c2w))
+                             min_fitness, scene_dir, turn_hint=stage_hint(scene.om, rec.c2w),
+                             seed=seed)
   c2w_um = {name: align.om_c2w_um(c, al.S) for name, c in rec.c2w.items()}
   height, width = scene.om[0].shape
   anchoring = anchor.anchor_photos(scene.wli, reg.c2w, [o for o in scene.om if o.name in c2w_um],
-                                   rec.K)
+                                   rec.K, seed)
   gr = ground.ground_cameras(c2w_um, rec.points @ al.S[:3, :3].T + al.S[:3, 3], rec.observations,
                              rec.K, (width, height), reg.points, reg.normals, reg.voxel_um,
-                             anchoring)
+                             anchoring, seed)
   t["align"] = time.perf_counter()
   wli_scans = [dataclasses.replace(s, c2w=c) for s, c in zip(scene.wli, reg.c2w)]
   om = [dataclasses.replace(o, K=rec.K.copy(), c2w=gr.c2w[o.name])

@@ -151,6 +151,31 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
                    time.perf_counter() - t0)
 
 
+def absolute_pose(xy: np.ndarray, X: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
+                  max_error_px: float, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+  """A photo's pose from 2-D/3-D matches: pycolmap's LO-RANSAC absolute pose and its refinement
+  with the intrinsics held -> (c2w [4, 4], inlier mask [k] bool), or None when RANSAC finds none.
+
+  xy: [k, 2] pixels; X: [k, 3] points; K: [3, 3]; image_size: (width, height); max_error_px: the
+  inlier threshold; seed: RANSAC's (COLMAP's default, -1, draws a new one every call, and the pose
+  then moves run to run by what the inliers at the threshold's edge change).
+  """
+  camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
+                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+  estimation = pycolmap.AbsolutePoseEstimationOptions()
+  estimation.ransac.max_error = max_error_px
+  estimation.ransac.random_seed = seed
+  refinement = pycolmap.AbsolutePoseRefinementOptions()
+  refinement.refine_focal_length = False
+  refinement.refine_extra_params = False
+  res = pycolmap.estimate_and_refine_absolute_pose(xy, X, camera, estimation, refinement)
+  if res is None:
+    return None
+  w2c = np.eye(4)
+  w2c[:3] = res["cam_from_world"].matrix()
+  return np.linalg.inv(w2c), np.asarray(res["inlier_mask"], bool)
+
+
 def _reconstruct(db: Path, workdir: Path, K: np.ndarray | None,
                  reader: pycolmap.ImageReaderOptions,
                  extraction: pycolmap.FeatureExtractionOptions,

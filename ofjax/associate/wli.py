@@ -121,11 +121,12 @@ def _spanning_tree(n: int, edges: list[PairResult]) -> dict[int, PairResult]:
 
 
 def register_scans(scans: list[scene_lib.WLIScan], min_overlap: float = 0.2,
-                   scene_dir: str = "SCENE_DIR") -> WLIRegistration:
+                   scene_dir: str = "SCENE_DIR", seed: int = 0) -> WLIRegistration:
   """Registers all scans into one um frame (module docstring) with a pose graph over all pairs.
 
   `min_overlap` is the ICP fitness a pair needs to count as overlapping; a scan that overlaps no
-  other scan, or a set of scans not connected to scan 0, is a UserError.
+  other scan, or a set of scans not connected to scan 0, is a UserError. seed: the global
+  registration's RANSAC (`register.global_register`).
   """
   if not scans:
     raise UserError(f"{scene_dir}/scene.json: the scene has no WLI scans; add at least one")
@@ -169,7 +170,7 @@ def register_scans(scans: list[scene_lib.WLIScan], min_overlap: float = 0.2,
         best, how = _register_pair(clouds[i], clouds[j], np.linalg.inv(guess[j]) @ guess[i],
                                    coarse_gate, fine_gate), "prior"
       if best is None or best.fitness < min_overlap:
-        g = register.global_register(global_cloud(i), global_cloud(j), global_v)
+        g = register.global_register(global_cloud(i), global_cloud(j), global_v, seed)
         res = _register_pair(clouds[i], clouds[j], g.transformation, coarse_gate, fine_gate)
         if best is None or res.fitness > best.fitness:
           best, how = res, "global"
