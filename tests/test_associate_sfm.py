@@ -23,9 +23,9 @@ def test_keypoint_scale_is_colmaps():
 
 def noisy_matches(rng, n=300, noise_px=1.0, outliers=0.2):
   """A camera 650 um above a relief, looking down with a 10 deg tilt; its keypoints of n points
-  with noise_px per axis (so that the inliers at the 2 px threshold's edge depend on RANSAC's
-  draws), a share of them replaced by random pixels -> (c2w [4, 4], xy [n, 2], X [n, 3], outlier
-  mask [n])."""
+  with noise_px per axis (so that the inliers at the edge of sfm.POSE_MAX_ERROR_PX depend on
+  RANSAC's draws), a share of them replaced by random pixels -> (c2w [4, 4], xy [n, 2], X [n, 3],
+  outlier mask [n])."""
   c2w = np.eye(4)
   c2w[:3, :3] = Rotation.from_euler("xyz", (180.0 + 10.0, 4.0, 30.0), degrees=True).as_matrix()
   c2w[:3, 3] = -650.0 * c2w[:3, 2]
@@ -39,12 +39,12 @@ def noisy_matches(rng, n=300, noise_px=1.0, outliers=0.2):
 
 def test_absolute_pose_repeats_with_its_seed_and_finds_the_camera():
   c2w, xy, X, bad = noisy_matches(np.random.default_rng(0))
-  first = sfm.absolute_pose(xy, X, K, SIZE, 2.0, seed=0)
+  first = sfm.absolute_pose(xy, X, K, SIZE, seed=0)
   assert first is not None
   # COLMAP's default seed (-1) draws anew each call: on data like these the pose moved by 0.7-2.6
   # um and 0.06-0.23 deg between calls. With a seed, calls repeat exactly.
   for _ in range(3):
-    again = sfm.absolute_pose(xy, X, K, SIZE, 2.0, seed=0)
+    again = sfm.absolute_pose(xy, X, K, SIZE, seed=0)
     np.testing.assert_array_equal(again[0], first[0])
     np.testing.assert_array_equal(again[1], first[1])
   est, inliers = first

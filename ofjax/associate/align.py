@@ -365,7 +365,8 @@ def align_om_to_wli(p_om: np.ndarray, p_wli: np.ndarray, wli_normals: np.ndarray
   # Turns: about up from the cameras, and the FPFH one (x_um = g (s0 (x - c_om)) + c_wli).
   src_n = register.downsample(register.to_cloud((p_om - c_om) * s0), gv)
   tgt_n = register.downsample(register.to_cloud(p_wli - c_wli), gv)
-  turns = [("fpfh", np.asarray(register.global_register(src_n, tgt_n, gv, seed).transformation)[:3, :3])]
+  fpfh = register.global_register(src_n, tgt_n, gv, seed)
+  turns = [("fpfh", np.asarray(fpfh.transformation)[:3, :3])]
   up = _rot_to_z(-np.mean(om_forward, axis=0))
   turns += [("cameras", _rz(2 * np.pi * k / YAW_STEPS) @ up) for k in range(YAW_STEPS)]
   coarse_gates = [f * r_wli for f in SEED_GATES_SPREADS] + [SEED_GATE_VOXELS * gv]

@@ -36,7 +36,6 @@ from ofjax.associate import sfm
 MAX_NUM_FEATURES = 8192  # SIFT keypoints per image (a 1,024 px scan holds more texture than 4,096)
 MATCH_MAX_RATIO = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance
 THREADS = 1  # one SIFT extraction thread: the same keypoints in every run
-RANSAC_MAX_ERROR_PX = 2.0  # absolute-pose inlier threshold, pixels
 MIN_ANCHORS = 30  # a photo with fewer pose-consistent matches is not anchored
 MIN_ANCHORED_PHOTOS = 3  # fewer anchored photos cannot fix the OM block's turn and scale
 DEPTH_STEP_PIXELS = 2.0  # a keypoint whose 2 x 2 depth neighbourhood spans more than this many
@@ -129,8 +128,9 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
   """Anchors of every photo on the scans' intensity images (module docstring).
 
   scans, scan_c2w: the WLI scans and their registered camera-to-world (um); photos: the OM
-  photos; K: [3, 3] their shared intrinsics; seed: the poses' RANSAC (`sfm.absolute_pose`). Returns None when no scan carries an intensity image
-  or fewer than MIN_ANCHORED_PHOTOS photos could be anchored.
+  photos; K: [3, 3] their shared intrinsics; seed: the poses' RANSAC (`sfm.absolute_pose`).
+  Returns None when no scan carries an intensity image or fewer than MIN_ANCHORED_PHOTOS photos
+  could be anchored.
   """
   with_intensity = [(s, c) for s, c in zip(scans, scan_c2w) if s.intensity is not None]
   if not with_intensity:
@@ -155,7 +155,7 @@ def anchor_photos(scans: list[scene_lib.WLIScan], scan_c2w: list[np.ndarray],
     matches[photo.name] = len(xy_m)
     if len(xy_m) < MIN_ANCHORS:
       continue
-    found = sfm.absolute_pose(xy_m, X_m, K, photo.shape[::-1], RANSAC_MAX_ERROR_PX, seed)
+    found = sfm.absolute_pose(xy_m, X_m, K, photo.shape[::-1], seed)
     if found is None or found[1].sum() < MIN_ANCHORS:
       continue
     c2w_out[photo.name], inliers = found

@@ -62,7 +62,6 @@ SNAP_GATE_VOXELS = 3.0  # SfM points farther than this from P_wli (voids, beyond
 MIN_POINTS = 20  # a photo with fewer snapped points keeps its step-2 pose
 LEVEL_NZ = 0.9  # SfM tracks take part only where the WLI surface faces up at least this much
 # (|n_z|; the level class of benchmarks/README.md's SfM point offsets, 25.8 deg from the vertical)
-RANSAC_MAX_ERROR_PX = 2.0  # absolute-pose inlier threshold (SfM keeps points with error <= 1 px)
 ADJUST_MAX_ERROR_PX = 3.0  # keypoints the rounds' cameras miss by more are left out of the
 # adjustment: mismatched tracks (1.1% of circuit's keypoints; 124 px at the 99th percentile even
 # through the true cameras), which would otherwise pull the cameras
@@ -298,7 +297,7 @@ def ground_cameras(c2w: dict[str, np.ndarray], points: np.ndarray,
       use = ok[idx]
       if name not in poses or use.sum() < MIN_POINTS:
         continue
-      found = absolute_pose(xy[use], on_wli[idx[use]], K, image_size, RANSAC_MAX_ERROR_PX, seed)
+      found = absolute_pose(xy[use], on_wli[idx[use]], K, image_size, seed)
       if found is None or found[1].sum() < MIN_POINTS:
         continue
       poses[name] = found[0]

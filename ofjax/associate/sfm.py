@@ -31,6 +31,8 @@ MAX_POINT_ERROR_PX = 1.0  # ... with a mean reprojection error of at most this (
 SFM_THREADS = 1  # deterministic SfM (see _reconstruct)
 QUIET_LOG_LEVEL = 1  # glog level while pycolmap runs: warnings and errors only
 SAME_K_RTOL = 1e-6  # photos whose intrinsics differ by more than this do not share one camera
+POSE_MAX_ERROR_PX = 2.0  # inlier threshold of a photo's absolute pose from 2-D/3-D matches (the
+# anchors' and the re-posing's); the SfM's own points keep a mean error <= MAX_POINT_ERROR_PX
 
 
 Observations = dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]  # photo name -> (xy [k, 2]
@@ -152,13 +154,14 @@ def run_sfm(images: list[scene_lib.OMImage], workdir: str | Path, scene_dir: str
 
 
 def absolute_pose(xy: np.ndarray, X: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
-                  max_error_px: float, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+                  seed: int, max_error_px: float = POSE_MAX_ERROR_PX
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
   """A photo's pose from 2-D/3-D matches: pycolmap's LO-RANSAC absolute pose and its refinement
   with the intrinsics held -> (c2w [4, 4], inlier mask [k] bool), or None when RANSAC finds none.
 
-  xy: [k, 2] pixels; X: [k, 3] points; K: [3, 3]; image_size: (width, height); max_error_px: the
-  inlier threshold; seed: RANSAC's (COLMAP's default, -1, draws a new one every call, and the pose
-  then moves run to run by what the inliers at the threshold's edge change).
+  xy: [k, 2] pixels; X: [k, 3] points; K: [3, 3]; image_size: (width, height); seed: RANSAC's
+  (COLMAP's default, -1, draws a new one every call, and the pose then moves run to run by what
+  the inliers at the threshold's edge change); max_error_px: the inlier threshold.
   """
   camera = pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
