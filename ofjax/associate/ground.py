@@ -36,6 +36,8 @@ scene's anchors through the true cameras: 0.26 px median error at scale ~1, 0.98
 only the tracks of points on level WLI faces (`on_level_faces`) take part: on sloped faces the OM
 shading moves the keypoints with the view, and the SfM points sit 0.5-1 um inside the surface. On
 wing the two take the largest camera error from 0.21 to 0.14 degree (centre 0.79% -> 0.53%).
+An anchor's sigma is ANCHOR_SIGMA_FACTOR times a track keypoint's of the same scale: it pairs two
+modalities, whose shading differs (wing: centre 0.55% -> 0.47%).
 
 Conventions: c2w are [4, 4] camera-to-world in um (OpenCV axes); points [N, 3] in um; `tracks`
 map a point index to its observations [(photo name, xy [2] pixels)].
@@ -71,6 +73,11 @@ SIGMA_PX_PER_SCALE = 1.0  # one sigma of a keypoint's reprojection error (SfM tr
 # pixels per pixel of its SIFT scale: a blob's matched position is as uncertain as the blob is
 # wide (the wing scene's anchors through the true cameras: median error 0.26 px at scale ~1,
 # 0.98 px at scale > 3; seed 0.14 -> 0.30 px)
+ANCHOR_SIGMA_FACTOR = 2.0  # an anchor's sigma over an SfM track keypoint's of the same SIFT
+# scale: an anchor pairs keypoints of two modalities (the scan's intensity, the photo's colour),
+# whose shading differs, a track those of photos alike. Largest OM centre error over the five
+# scenes at factor 1 / 2 / 4: 0.551 / 0.473 / 0.444% (wing), circuit 0.167 / 0.162 / 0.266%
+# (benchmarks/README.md, "Anchors weighted below the tracks")
 ADJUST_LOSS_SIGMAS = 1.0  # soft-L1 scale of the residuals, in their sigmas
 ADJUST_ROUNDS = 2  # nearest-WLI-point (tangent plane) updates, one least-squares solve each
 ADJUST_MAX_NFEV = 30  # residual evaluations per solve (it converges in ~15-30)
@@ -205,8 +212,8 @@ def adjust(c2w: dict[str, np.ndarray], points: np.ndarray,
       np.zeros(0, int)])
   a_xy = np.concatenate([anchors[names[k]][0] for k in anchored] + [np.zeros((0, 2))])
   a_X = np.concatenate([anchors[names[k]][1] for k in anchored] + [np.zeros((0, 3))])
-  a_sigma = SIGMA_PX_PER_SCALE * np.concatenate([anchors[names[k]][2] for k in anchored]
-                                                 + [np.zeros(0)])
+  a_sigma = ANCHOR_SIGMA_FACTOR * SIGMA_PX_PER_SCALE * np.concatenate(
+      [anchors[names[k]][2] for k in anchored] + [np.zeros(0)])
   n_cam, n_pt, n_obs, n_anc = len(names), len(X), len(cam), len(a_cam)
   sigma = ADJUST_SURFACE_SIGMA_VOXELS * wli_voxel_um
   gate = SNAP_GATE_VOXELS * wli_voxel_um
