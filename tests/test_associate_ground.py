@@ -9,12 +9,11 @@ and shifted, each on its own or all together, points bent off the surface, keypo
 from __future__ import annotations
 
 import numpy as np
-import pycolmap
 import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ofjax.associate import evaluate, ground
+from ofjax.associate import evaluate, ground, sfm
 
 K = np.array([[700.0, 0, 160], [0, 700.0, 120], [0, 0, 1]])
 SIZE = (320, 240)  # width, height in pixels
@@ -80,16 +79,11 @@ def perturbed(rng, cams, deg, um):
 
 
 def resected(obs, points):
-  """c2w of every photo re-posed from its keypoints and `points` (pycolmap absolute pose)."""
-  camera = pycolmap.Camera(model="PINHOLE", width=SIZE[0], height=SIZE[1],
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+  """c2w of every photo re-posed from its keypoints and `points` (`sfm.absolute_pose`, seeded)."""
   out = {}
   for name, (xy, idx, _) in obs.items():
     ok = np.all(np.isfinite(points[idx]), axis=1)
-    res = pycolmap.estimate_and_refine_absolute_pose(xy[ok], points[idx[ok]], camera)
-    w2c = np.eye(4)
-    w2c[:3] = res["cam_from_world"].matrix()
-    out[name] = np.linalg.inv(w2c)
+    out[name] = sfm.absolute_pose(xy[ok], points[idx[ok]], K, SIZE, seed=0)[0]
   return out
 
 
@@ -114,8 +108,8 @@ def test_adjust_takes_out_each_cameras_own_error_and_keeps_the_common_part():
     xy[bad] += 40.0
   tracks = ground.tracks_of(obs)
   # The start is a state like ground_cameras' rounds leave: cameras each off on their own, points
-  # triangulated from them, every camera re-posed from those points (pycolmap), and the points
-  # triangulated again, so that cameras and points agree to a fraction of a pixel.
+  # triangulated from them, every camera re-posed from those points (as the rounds do), and the
+  # points triangulated again, so that cameras and points agree to a fraction of a pixel.
   start = perturbed(rng, cams, deg=0.6, um=4.0)
   start = resected(obs, ground.triangulate(tracks, start, K, len(pts)))
   start_points = ground.triangulate(tracks, start, K, len(pts))
