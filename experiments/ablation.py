@@ -21,8 +21,9 @@ run directories with meshes and heat maps, one record JSON per job, so an interr
 reused. The summary goes to --out (default experiments/results/):
 ablation.json (every record, the machine, the commit, the budget), ablation.md (the tables laid
 out like the paper's, ratios beside the paper's, the issue's targets, wall times) and
-figures/<poses>_<scene>.png (per method: top-view render and completeness heat map, one colour
-scale per scene).
+figures/<poses>_<scene>.png (per method: top-view render, completeness and accuracy heat maps, one
+colour scale per scene; every method's cross-section through the middle of the scene against the
+truth's, whole and zoomed where the fused mesh is farthest from it).
 
 --steps and --resolution reduce the budget (training steps; synth image sizes); both are recorded
 and name the work directory, so runs of different budgets never mix.
@@ -65,6 +66,7 @@ PAPER_CHAMFER = {"conventional": 0.793, "om": 0.538, "wli": 0.678, "fused_nores"
 SYNTH_SEED = 0
 FSCORE_INDEX = -1  # the F-score at the loosest threshold (1% of the GT diagonal) goes in the table
 WITHIN = 0.10  # the issue's "within 10%" for fused vs the best method, and nores vs fused
+SECTION_ZOOM = 0.08  # the figures' zoomed cross-section: half its width, a share of the sample's
 ROOT = Path(__file__).resolve().parents[1]
 # ofjax.export's message when a trained SDF has no surface: the method failed at this budget, which
 # is a result of the ablation (Chamfer infinite), not a broken job.
@@ -410,19 +412,72 @@ def pose_source_table(summary: dict, scenes: list[str]) -> str:
   return "\n".join(lines)
 
 
-def figure(path: Path, scene: str, records: list[dict]) -> None:
-  """Per method (the first seed): the top-view render over the completeness heat map."""
+def section(mesh, y: float) -> np.ndarray:
+  """[n, 2, 2] segments (x, z um) where the plane y = `y` cuts `mesh` (a trimesh)."""
+  import trimesh
+  seg = trimesh.intersections.mesh_plane(mesh, plane_normal=[0.0, 1.0, 0.0],
+                                         plane_origin=[0.0, y, 0.0])
+  return np.asarray(seg, np.float64).reshape(-1, 2, 3)[..., [0, 2]]
+
+
+def farthest_point(truth: np.ndarray, cut: np.ndarray) -> np.ndarray:
+  """[2] (x, z um): the point of `cut` ([n, 2, 2] segments) farthest from `truth` ([m, 2, 2]),
+  both in the (x, z) plane of one section."""
+  from scipy.spatial import cKDTree
+
+  def dense(segments):  # points along every segment, so long segments count along their length
+    t = np.linspace(0.0, 1.0, 9)[:, None, None]
+    return (segments[None, :, 0] * (1 - t) + segments[None, :, 1] * t).reshape(-1, 2)
+
+  points = dense(cut)
+  return points[np.argmax(cKDTree(dense(truth)).query(points)[0])]
+
+
+def sections(scene_dir: Path, runs: dict[str, dict]
+             ) -> tuple[float, tuple[float, float], dict[str, np.ndarray]]:
+  """The y (um) of the cut through the middle of the sample's box (the truth's meta.json), the
+  box's x interval (um), and each method's segments ([n, 2, 2], x and z um) in the truth's frame,
+  the truth's under "truth"; `runs` maps a variant to its record. No segments when the scene's
+  truth is not on this machine."""
+  from ofjax import eval as ev
+  from ofjax.meshquery import load_mesh
+  gt = Path(scene_dir) / "ground_truth"
+  if not (gt / "mesh.ply").is_file():
+    return 0.0, (0.0, 0.0), {}
+  meta = json.loads((gt / "meta.json").read_text())
+  box = np.asarray(meta["bbox_um"], np.float64)
+  y = float(box[:, 1].mean())
+  out = {"truth": section(load_mesh(gt / "mesh.ply"), y)}
+  for v, r in runs.items():
+    mesh_path = Path(r["result"]["run_dir"]) / "mesh.ply"
+    if not mesh_path.is_file():
+      continue
+    mesh = load_mesh(mesh_path)
+    if r["job"]["params"]["poses_source"] == "associate":
+      ev.to_truth_frame(mesh, Path(r["job"]["params"]["poses"]), Path(scene_dir), meta)
+    out[v] = section(mesh, y)
+  return y, (float(box[0, 0]), float(box[1, 0])), out
+
+
+def figure(path: Path, scene: str, records: list[dict]):
+  """Per method (the first seed): the top-view render, the completeness and the accuracy heat
+  maps; below, every method's cross-section through the middle of the scene against the truth's,
+  whole and zoomed where the fused mesh is farthest from the truth. Returns the matplotlib Figure
+  (saved to `path`)."""
   import matplotlib.image as mpimg
+  from matplotlib.collections import LineCollection
   from matplotlib.figure import Figure
 
   from ofjax import plots
-  runs = {r["job"]["variant"]: Path(r["result"]["run_dir"]) for r in records
-          if r["result"]["eval"] is not None}
+  finished = {r["job"]["variant"]: r for r in records if r["result"]["eval"] is not None}
+  runs = {v: Path(r["result"]["run_dir"]) for v, r in finished.items()}
   methods = [v for v in VARIANTS if v in runs]
-  fig = Figure(figsize=(4.2 * len(methods), 7.0))
+  images = ("preview.png", "mesh_completeness.png", "mesh_accuracy.png")
+  fig = Figure(figsize=(4.2 * len(methods), 14.0))
+  grid = fig.add_gridspec(len(images) + 1, 2 * len(methods))
   for col, v in enumerate(methods):
-    for row, name in enumerate(("preview.png", "mesh_completeness.png")):
-      ax = fig.add_subplot(2, len(methods), row * len(methods) + col + 1)
+    for row, name in enumerate(images):
+      ax = fig.add_subplot(grid[row, 2 * col:2 * col + 2])
       if (runs[v] / name).is_file():
         ax.imshow(mpimg.imread(runs[v] / name))
       else:  # a record kept from an earlier run (`reused_from`) whose directory is not here
@@ -431,10 +486,42 @@ def figure(path: Path, scene: str, records: list[dict]) -> None:
       ax.set_axis_off()
       if row == 0:
         ax.set_title(LABELS[v])
-  fig.suptitle(f"{scene}: renders (top) and completeness heat maps (bottom; one colour scale for "
-               "the scene: 0 .. 2% of the GT diagonal)")
+  y, (lo, hi), cuts = (sections(Path(records[0]["job"]["params"]["scene_dir"]), finished)
+                       if records else (0.0, (0.0, 0.0), {}))
+  if "truth" in cuts:
+    whole = fig.add_subplot(grid[len(images), :len(methods)])
+    zoom = fig.add_subplot(grid[len(images), len(methods):])
+    probe = next((v for v in ("fused", *reversed(methods)) if v in cuts), None)
+    on_sample = (lambda c: c[((c[..., 0] >= lo) & (c[..., 0] <= hi)).all(-1)])  # noqa: E731
+    half = SECTION_ZOOM * (hi - lo)
+    centre = (farthest_point(cuts["truth"], on_sample(cuts[probe]))
+              if probe and on_sample(cuts[probe]).size else np.array([(lo + hi) / 2, 0.0]))
+    palette = dict(zip(("truth", *VARIANTS), ("black", "C1", "C4", "C2", "C0", "C3")))
+    for v in ("truth", *methods):
+      if v in cuts:
+        for ax in (whole, zoom):
+          ax.add_collection(LineCollection(cuts[v], colors=palette[v], linewidths=1.0,
+                                           label=LABELS.get(v, "truth")))
+    z = np.concatenate([c[..., 1].ravel() for c in map(on_sample, cuts.values()) if c.size])
+    pad = 0.05 * max(z.max() - z.min(), 1e-3)
+    for ax, xlim, ylim, title in (
+        (whole, (lo, hi), (z.min() - pad, z.max() + pad), f"cross-section at y = {float(np.round(y)) + 0.0:.0f} um "
+         "(z stretched)"),
+        (zoom, centre[0] + np.array([-half, half]), centre[1] + np.array([-half, half]),
+         f"zoom where {LABELS.get(probe, '')} is farthest from the truth (true shape)")):
+      ax.set_xlim(*xlim)
+      ax.set_ylim(*ylim)
+      ax.set_xlabel("x (um)")
+      ax.set_ylabel("z (um)")
+      ax.set_title(title)
+      ax.grid(alpha=0.3)
+    zoom.set_aspect("equal", adjustable="box")
+    zoom.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=9)
+  fig.suptitle(f"{scene}: renders, completeness (truth -> mesh) and accuracy (mesh -> truth) heat "
+               "maps (one colour scale for the scene: 0 .. 2% of the GT diagonal), cross-sections")
   fig.tight_layout()
   plots.save(fig, path)
+  return fig
 
 
 def commits_line(records: list[dict]) -> str:

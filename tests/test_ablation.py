@@ -143,3 +143,57 @@ def test_commits_line_counts_runs_and_the_meshes_exported_again(tmp_path):
   assert "`aaaaaaa` 2 (Fused 1, WLI only 1)" in line
   assert "1 of their meshes exported again" in line and "`bbbbbbb`" in line
   assert "exported again" not in ablation.commits_line(records[:1])
+
+
+def test_section_of_a_sphere_is_the_circle_of_its_plane():
+  """The plane y = 3 cuts a sphere of radius 5 in the circle of radius 4 around (x, z) = (1, 2);
+  every segment end lies on it to the mesh's facet error, and the segments go all round."""
+  import trimesh
+  sphere = trimesh.creation.icosphere(subdivisions=5, radius=5.0)
+  sphere.apply_translation([1.0, 0.0, 2.0])
+  seg = ablation.section(sphere, 3.0)
+  assert seg.ndim == 3 and seg.shape[1:] == (2, 2) and seg.dtype == np.float64
+  radius = np.linalg.norm(seg.reshape(-1, 2) - [1.0, 2.0], axis=-1)
+  np.testing.assert_allclose(radius, 4.0, rtol=5e-3)
+  angle = np.arctan2(*(seg.reshape(-1, 2) - [1.0, 2.0]).T[::-1])
+  assert np.ptp(angle) > 0.99 * 2 * np.pi
+  assert ablation.section(sphere, 6.0).shape == (0, 2, 2)  # above the sphere: no cut
+
+
+def test_farthest_point_finds_the_bump():
+  """A flat truth and a cut with a 2 um bump at x = 3: the farthest point is the bump's top, also
+  when the truth is drawn with segments far longer than the cut's."""
+  xs = np.linspace(-10.0, 10.0, 201)
+  z = 2.0 * np.exp(-((xs - 3.0) / 0.5) ** 2)
+  cut = np.stack([np.stack([xs[:-1], z[:-1]], -1), np.stack([xs[1:], z[1:]], -1)], 1)
+  truth = np.array([[[-10.0, 0.0], [0.0, 0.0]], [[0.0, 0.0], [10.0, 0.0]]])
+  np.testing.assert_allclose(ablation.farthest_point(truth, cut), [3.0, 2.0], atol=0.06)
+
+
+def test_figure_draws_the_cross_sections_against_the_truth(tmp_path):
+  """With the truth and a method's mesh on this machine the figure gains the cross-section row,
+  in the truth's frame for true poses; without the truth it has none."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import trimesh
+  from matplotlib import pyplot as plt
+  gt = tmp_path / "scene" / "ground_truth"
+  gt.mkdir(parents=True)
+  trimesh.creation.box(extents=[40.0, 40.0, 10.0]).export(gt / "mesh.ply")
+  (gt / "meta.json").write_text(json.dumps({"bbox_um": [[-20, -20, -5], [20, 20, 5]]}))
+  job = _job(tmp_path, "true", "fused")
+  Path(job.params["run_dir"]).mkdir()
+  moved = trimesh.creation.box(extents=[40.0, 40.0, 10.0])
+  moved.apply_translation([0.0, 0.0, 1.0])
+  moved.export(Path(job.params["run_dir"]) / "mesh.ply")
+  y, (lo, hi), cuts = ablation.sections(tmp_path / "scene", {"fused": _finished(job)})
+  assert y == 0.0 and (lo, hi) == (-20.0, 20.0) and set(cuts) == {"truth", "fused"}
+  np.testing.assert_allclose(cuts["fused"][..., 1].max() - cuts["truth"][..., 1].max(), 1.0)
+  fig = ablation.figure(tmp_path / "with.png", "seed", [_finished(job)])
+  assert len(fig.axes) == 3 + 2  # render and two heat maps for the one method, whole and zoom
+  zoom = fig.axes[-1]
+  assert [c.get_label() for c in zoom.collections] == ["truth", "Fused"]
+  np.testing.assert_allclose(zoom.collections[1].get_segments()[0], cuts["fused"][0])
+  elsewhere = _job(tmp_path / "scene", "true", "fused")  # its scene_dir holds no truth
+  Path(elsewhere.params["run_dir"]).mkdir()
+  assert len(ablation.figure(tmp_path / "without.png", "seed", [_finished(elsewhere)]).axes) == 3
