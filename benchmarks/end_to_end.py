@@ -31,6 +31,7 @@ import numpy as np
 
 from ofjax import checkpoint, eval as eval_lib, export, fields, fileio, metrics, plots, train
 from ofjax.meshquery import load_mesh
+from ofjax.scene import load_poses
 from ofjax.errors import UserError, cli
 
 
@@ -77,6 +78,7 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
   template = fields.init_params(jax.random.PRNGKey(0), cfg)
   opt_template = train.make_optimizer(cfg).init(template)
   gt, meta = eval_lib.load_ground_truth(scene_dir)
+  poses = load_poses(run_dir / export.POSES)  # the final mesh's cleanup (ofjax.export) on each
   points = []
   for step in checkpoint.list_steps(run_dir):
     if step in skip:
@@ -84,7 +86,7 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
     _, params, _ = checkpoint.restore(run_dir, template, opt_template, step)
     mesh_path = run_dir / "curve" / f"mesh_{step:06d}.ply"
     export.export_run(params, cfg, result.norm, result.box, mesh_path,
-                      cfg.train.mesh_resolution)
+                      cfg.train.mesh_resolution, poses=poses)
     mesh = load_mesh(mesh_path)
     eval_lib.to_truth_frame(mesh, scene_dir / "poses.json", scene_dir, meta)
     ev = metrics.evaluate(mesh, gt)

@@ -169,29 +169,38 @@ def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
   extracted = {} if job.variant == "conventional" else {"export_refine_steps": export.REFINE_STEPS}
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
-          "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job), **extracted}
+          "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job),
+          "hidden_dropped": True, **extracted}
 
 
 def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
   """Re-runs the evaluation of finished runs that were evaluated with other arguments than
-  eval_args gives now (records older than --poses count as none), after exporting a neural run's
-  mesh again from its last checkpoint when the export's vertex refinement differs from this code's
-  (records older than it count as 0 steps); the training is kept, the record says which commit
-  re-exported and evaluated it."""
+  eval_args gives now (records older than --poses count as none), after making the mesh again
+  when it predates this code's: a neural run's is exported again from its last checkpoint when the
+  export's vertex refinement differs (records older than it count as 0 steps) or it kept the faces
+  no camera sees (records without `hidden_dropped`), a Poisson one reconstructed again in the
+  latter case; the training is kept, the record says which commit remade and evaluated it."""
   by_result = {j.result: j for j in jobs}
   for r in records:
     res = r.get("result")
     if not res or res.get("eval") is None or "job" not in r:
       continue
     job = by_result[r["job"]["result"]]
-    stale_mesh = (job.variant != "conventional"
-                  and res.get("export_refine_steps", 0) != export.REFINE_STEPS)
+    neural = job.variant != "conventional"
+    stale_mesh = (not res.get("hidden_dropped")
+                  or neural and res.get("export_refine_steps", 0) != export.REFINE_STEPS)
     if res.get("eval_args", []) == eval_args(job) and not stale_mesh:
       continue
     stages = {k: v for k, v in res["stages_s"].items() if k not in ("eval", "export")}
-    if stale_mesh:
-      log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps)")
+    if stale_mesh and neural:
+      log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps, "
+          "hidden faces dropped)")
       _, stages["export"] = run_cli("export", res["run_dir"])
+    elif stale_mesh:
+      log(f"ablation: reconstructing {r['name']} again (hidden faces dropped)")
+      p = job.params
+      _, stages["conventional"] = run_cli("conventional", p["scene_dir"], "--out", p["run_dir"],
+                                          "--poses", p["poses"])
     log(f"ablation: re-evaluating {r['name']} {' '.join(eval_args(job))}")
     new = _evaluated(job, stages, res.get("git"))
     r["result"] = {**new, "eval_git": git_state()}

@@ -34,6 +34,7 @@ import ablation  # noqa: E402
 import sweep  # noqa: E402
 
 from ofjax import config, fileio, machine  # noqa: E402
+from ofjax import scene as scene_lib  # noqa: E402
 from ofjax.errors import UserError, cli  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +58,8 @@ def run_variant(job: sweep.Job) -> dict:
   result = train.train(scene, cfg, run_dir, progress=p["progress"],
                        meta={"data": p["scene_dir"], "poses": p["poses"]})
   mesh = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                           resolution=cfg.train.mesh_resolution, units=scene.units)
+                           resolution=cfg.train.mesh_resolution, units=scene.units,
+                           poses=scene_lib.poses_to_json(scene))
   out, _ = ablation.run_cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--poses",
                            p["poses"], "--json")
   ev = json.loads(out.strip().splitlines()[-1])

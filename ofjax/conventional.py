@@ -38,7 +38,7 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ofjax import fileio, meshfile, plots
+from ofjax import fileio, meshfile, plots, visibility
 from ofjax import scene as scn
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import MeshQuery
@@ -56,6 +56,7 @@ class BaselineConfig:
   min_component: float = 0.01  # components below this share of the triangles are removed
   visibility_tol: float = 0.5  # occlusion slack, in median edge lengths
   stride: int = 1  # use every stride-th WLI pixel along rows and columns
+  keep_hidden: bool = False  # keep the faces no camera sees (step 4; ofjax.visibility)
 
 
 def wli_cloud(scene: scn.Scene, cfg: BaselineConfig) -> o3d.geometry.PointCloud:
@@ -157,16 +158,26 @@ def reconstruct(scene: scn.Scene, cfg: BaselineConfig = BaselineConfig()
   mesh = poisson(pcd, cfg, pixel_size)
   lap("poisson")
   vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+  normals = np.asarray(mesh.vertex_normals)
   if len(faces) == 0:
     raise UserError("Poisson reconstruction left no surface after trimming; lower "
                     "--trim-quantile or check the WLI data")
-  colours, unseen = project_colours(vertices, np.asarray(mesh.vertex_normals), faces, scene.om,
-                                    cfg)
+  hidden = 0
+  if not cfg.keep_hidden:
+    seen = visibility.seen_faces(trimesh.Trimesh(vertices, faces, process=False),
+                                 scn.poses_to_json(scene))
+    hidden = int(np.sum(~seen))
+    used = np.unique(faces[seen])
+    remap = np.zeros(len(vertices), np.int64)
+    remap[used] = np.arange(len(used))
+    vertices, normals, faces = vertices[used], normals[used], remap[faces[seen]]
+  lap("visibility")
+  colours, unseen = project_colours(vertices, normals, faces, scene.om, cfg)
   lap("colour")
   out = trimesh.Trimesh(vertices, faces, vertex_colors=np.round(colours * 255).astype(np.uint8),
                         process=False)
   stats = {"wli_points": len(pcd.points), "vertices": len(vertices), "faces": len(faces),
-           "unseen_vertices": unseen, "wli_pixel_size_um": pixel_size, "seconds": timing}
+           "hidden_faces_dropped": hidden, "unseen_vertices": unseen, "wli_pixel_size_um": pixel_size, "seconds": timing}
   return out, stats
 
 
@@ -183,6 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
                  help=f"drop vertices below this Poisson-density quantile ({d.trim_quantile})")
   p.add_argument("--stride", type=int, default=d.stride,
                  help="use every n-th WLI pixel along rows and columns (1)")
+  p.add_argument("--keep-hidden", action="store_true",
+                 help="keep the faces no camera sees (pockets inside solid parts)")
   return p
 
 
@@ -197,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     raise UserError(f"--stride {args.stride}: must be a positive integer")
   if args.out.exists() and not args.out.is_dir():
     raise UserError(f"{args.out}: exists and is not a directory; choose another --out")
-  cfg = BaselineConfig(depth=args.depth, trim_quantile=args.trim_quantile, stride=args.stride)
+  cfg = BaselineConfig(depth=args.depth, trim_quantile=args.trim_quantile, stride=args.stride,
+                       keep_hidden=args.keep_hidden)
   scene = scn.load_scene(args.scene, poses=args.poses)
   mesh, stats = reconstruct(scene, cfg)
   path = args.out / "mesh.ply"

@@ -1,6 +1,7 @@
 """Mesh export: marching cubes of the SDF, vertex colours from the global colour network, in um.
 
-`python -m ofjax.export RUN_DIR [--resolution N] [--refine-steps K] [--format ply|obj|glb] [--out FILE]`
+`python -m ofjax.export RUN_DIR [--resolution N] [--refine-steps K] [--format ply|obj|glb] [--out FILE]
+[--poses FILE | --keep-hidden]`
 
 The SDF is evaluated in chunks on a grid over the observed region (the WLI points' box, stored in
 the run's config.json), the zero level set is extracted with scikit-image, every vertex is moved
@@ -8,6 +9,9 @@ along its grid edge from the linear interpolation to the SDF's own zero (K bisec
 REFINE_STEPS; 0 keeps marching cubes' interpolation), floating components
 smaller than `min_component` of the largest are dropped, vertex colours come from G(x, n, f) only
 (paper Sec. 3.3.2: no view-dependent highlights), and coordinates are mapped back to micrometres.
+Last, the faces no camera of the run can see are dropped (`ofjax.visibility`: the pockets the SDF
+leaves inside solid parts); the cameras are the run's poses.json (written by `ofjax.train`), or
+--poses for a run trained before it; --keep-hidden keeps every face.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import numpy as np
 import trimesh
 from skimage import measure
 
-from ofjax import checkpoint, fields
+from ofjax import checkpoint, fields, visibility
 from ofjax import scene as scene_lib
 from ofjax.config import Config
 from ofjax.errors import UserError, cli
@@ -36,6 +40,11 @@ CHUNK = 1 << 16  # points per device call: bounded memory on a laptop
 # linear interpolation set its level faces 0.18 um low, 6 steps put them at +0.01 um, as a 1,024
 # grid did (experiments/README.md); each step costs one SDF evaluation per vertex.
 REFINE_STEPS = 6
+# Below this share of the faces in some camera's sight, the poses are not the run's (another
+# frame, another scene): a trained surface lies in its cameras' view almost whole (>= 92% on the
+# synthetic scenes, where the rest are pockets inside solid parts).
+MIN_SEEN = 0.5
+POSES = "poses.json"  # the cameras a run was trained with, in its directory
 
 
 def evaluate_chunked(fn: Callable, x: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
@@ -182,14 +191,25 @@ def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolu
 
 
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
-               units: str = "um", refine_steps: int = REFINE_STEPS) -> Path:
-  """Extracts and writes the mesh; refuses non-finite parameters (a diverged run)."""
+               units: str = "um", refine_steps: int = REFINE_STEPS,
+               poses: dict | None = None, poses_path: str | Path = POSES) -> Path:
+  """Extracts and writes the mesh; refuses non-finite parameters (a diverged run).
+
+  poses: the run's cameras (a poses file's contents, `poses_path` names it in messages): the
+    faces none of them sees are dropped (`ofjax.visibility`); None keeps every face.
+  """
   if not all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree_util.tree_leaves(params)):
     raise UserError(f"{path}: the parameters are not finite (the run diverged); no mesh written")
   mesh = extract_mesh(params, cfg, norm, box, resolution, refine_steps=refine_steps)
   if len(mesh.faces) == 0:
     raise UserError(f"{path}: the SDF has no zero crossing in the observed region; train longer "
                     "or check the data")
+  if poses is not None:
+    mesh, seen = visibility.drop_hidden(mesh, poses)
+    if seen < MIN_SEEN:
+      raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
+                      "cameras, so these are not the poses the run was trained with; pass those "
+                      "(--poses), or --keep-hidden to keep every face; no mesh written")
   return write_mesh(mesh, path, units)
 
 
@@ -216,6 +236,20 @@ def load_run(run_dir: Path):
   return params, cfg, norm, box, meta.get("units", "um")
 
 
+def run_poses(run_dir: Path, given: str | None) -> Path:
+  """The poses file of a run's cameras: `given`, else the run's own, else the one its config.json
+  names (runs trained before the run directory kept its own)."""
+  if given:
+    return Path(given)
+  if (run_dir / POSES).is_file():
+    return run_dir / POSES
+  named = json.loads((run_dir / "config.json").read_text()).get("poses")
+  if named and Path(named).is_file():
+    return Path(named)
+  raise UserError(f"{run_dir / POSES}: not found (the run predates it); pass the poses it was "
+                  "trained with (--poses FILE), or --keep-hidden to keep every face")
+
+
 @cli
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m ofjax.export",
@@ -227,6 +261,11 @@ def main(argv=None) -> int:
                       f"(default {REFINE_STEPS}; 0: marching cubes' linear interpolation)")
   p.add_argument("--format", default="ply", choices=FORMATS)
   p.add_argument("--out", help="output file (default: RUN_DIR/mesh.<format>)")
+  sight = p.add_mutually_exclusive_group()
+  sight.add_argument("--poses", help=f"the cameras that decide which faces are seen (default: "
+                     f"RUN_DIR/{POSES}, else the poses file named in its config.json)")
+  sight.add_argument("--keep-hidden", action="store_true",
+                     help="keep the faces no camera sees (pockets inside solid parts)")
   args = p.parse_args(argv)
   run_dir = Path(args.run_dir)
   params, cfg, norm, box, units = load_run(run_dir)
@@ -235,8 +274,11 @@ def main(argv=None) -> int:
     raise UserError(f"--resolution {res}: use at least 8 cells")
   if args.refine_steps < 0:
     raise UserError(f"--refine-steps {args.refine_steps}: use 0 or more")
+  poses_path = None if args.keep_hidden else run_poses(run_dir, args.poses)
+  poses = None if poses_path is None else scene_lib.load_poses(poses_path)
   out = Path(args.out) if args.out else run_dir / f"mesh.{args.format}"
-  path = export_run(params, cfg, norm, box, out, res, units, args.refine_steps)
+  path = export_run(params, cfg, norm, box, out, res, units, args.refine_steps, poses,
+                    poses_path or POSES)
   print(f"ofjax: mesh written to {path}")
   return 0
 

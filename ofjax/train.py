@@ -320,7 +320,8 @@ def _diverged(run_dir: Path | None, cfg: Config, step: int) -> UserError:
 
 def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, progress: bool = True,
           meta: dict | None = None, resume: bool = False) -> RunResult:
-  """Trains on a posed scene; with run_dir, writes config.json, metrics.jsonl, checkpoints.
+  """Trains on a posed scene; with run_dir, writes config.json, poses.json (the cameras),
+  metrics.jsonl, checkpoints.
 
   resume: continue from run_dir's newest checkpoint (from scratch when it has none); the result
   is the same as that of an uninterrupted run, metrics.jsonl included. Non-finite steps are skipped
@@ -367,6 +368,9 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
           "jax": jax.__version__, "backend": jax.default_backend(),
           "ofjax": {"version": ofjax_version, **machine.git_state()}, **prefit_logs,
           **(meta or {})})
+    # The cameras the run was trained with, beside its config: ofjax.export keeps the faces they see.
+    from ofjax import export
+    fileio.write_json(run_dir / export.POSES, scene_lib.poses_to_json(scene))
   # time_s continues across resumes: it is the training time (the WLI fit's included), not the
   # wall clock.
   t_before = json.loads(lines[-1])["time_s"] if lines else prefit_s
@@ -531,7 +535,8 @@ def main(argv=None) -> int:
                  resume=args.resume)
   from ofjax import export
   mesh_path = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                                resolution=cfg.train.mesh_resolution, units=scene.units)
+                                resolution=cfg.train.mesh_resolution, units=scene.units,
+                                poses=scene_lib.poses_to_json(scene))
   resumed = f" (resumed at step {result.start})" if result.start else ""
   print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
         f"{result.skipped} skipped; mesh: {mesh_path}")

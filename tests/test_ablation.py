@@ -35,14 +35,15 @@ def _finished(job: sweep.Job, **result) -> dict:
 def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, monkeypatch):
   """An associated run evaluated before --poses is re-evaluated (its training kept, both commits
   recorded, its record file rewritten); a neural run whose mesh was extracted with another vertex
-  refinement is exported again first; true-pose runs and up-to-date ones are left alone."""
+  refinement or with the hidden faces is exported again first, a Poisson run with the hidden faces
+  reconstructed again; true-pose runs and up-to-date ones are left alone."""
   calls, exported = [], []
 
   def fake_evaluated(job, stages, git):
     calls.append(job.name)
     return {"eval": {"chamfer_um": 1.0}, "stages_s": {**stages, "eval": 2.0},
             "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job),
-            "export_refine_steps": ablation.export.REFINE_STEPS}
+            "export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True}
 
   def fake_cli(module, *args):
     exported.append((module, args))
@@ -52,14 +53,24 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   monkeypatch.setattr(ablation, "run_cli", fake_cli)
   old, true, current, stale = (_job(tmp_path, "associate"), _job(tmp_path, "true"),
                                _job(tmp_path, "associate", "wli"), _job(tmp_path, "true", "om"))
-  now = {"export_refine_steps": ablation.export.REFINE_STEPS}
+  hidden, poisson, poisson_now = (_job(tmp_path, "true", "fused_nores"),
+                                  _job(tmp_path, "true", "conventional"),
+                                  _job(tmp_path, "associate", "conventional"))
+  now = {"export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True}
   records = [_finished(old, **now), _finished(true, eval_args=[], **now),
              _finished(current, eval_args=ablation.eval_args(current), **now),
              _finished(stale, eval_args=[]),  # exported before the refinement: 0 steps
-             {"job": {"result": "x"}, "name": "failed", "error": "boom"}]
-  out = ablation.reevaluate(records, [old, true, current, stale], log=lambda m: None)
-  assert calls == [old.name, stale.name]
-  assert exported == [("export", (stale.params["run_dir"],))]
+             {"job": {"result": "x"}, "name": "failed", "error": "boom"},
+             _finished(hidden, eval_args=[], export_refine_steps=ablation.export.REFINE_STEPS),
+             _finished(poisson, eval_args=[]),
+             _finished(poisson_now, eval_args=ablation.eval_args(poisson_now), hidden_dropped=True)]
+  out = ablation.reevaluate(records, [old, true, current, stale, hidden, poisson, poisson_now],
+                            log=lambda m: None)
+  assert calls == [old.name, stale.name, hidden.name, poisson.name]
+  p = poisson.params
+  assert exported == [("export", (stale.params["run_dir"],)),
+                      ("export", (hidden.params["run_dir"],)),
+                      ("conventional", (p["scene_dir"], "--out", p["run_dir"], "--poses", p["poses"]))]
   assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
   assert ablation.eval_args(true) == []
   assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}

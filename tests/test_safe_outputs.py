@@ -204,3 +204,28 @@ def test_failed_association_keeps_the_existing_poses(tmp_path, case, expected):
   assert res.returncode == 2 and len(err) == 1 and err[0].startswith("ofjax: error: "), res.stderr
   assert expected in err[0], err[0]
   assert (scene_dir / "poses.json").read_bytes() == poses and _listing(scene_dir) == before
+
+
+@pytest.mark.slow
+def test_export_refuses_poses_the_run_was_not_trained_with(trained, run_copy, capsys):
+  """The run keeps its cameras (poses.json, those of the scene); cameras moved 1 mm aside see
+  none of the surface: one line naming the poses file, exit 2, the mesh untouched. --keep-hidden
+  then exports without them."""
+  from ofjax import export
+  from ofjax import scene as scn
+  run, old = run_copy
+  poses = scn.load_poses(run / "poses.json")
+  assert poses == scn.load_poses(Path(trained[0]) / "poses.json")
+  for cam in poses["cameras"]:
+    cam["c2w"][0][3] += 1000.0
+  wrong = run.parent / "wrong_poses.json"
+  wrong.write_text(json.dumps(poses))
+  before = _listing(run)
+  capsys.readouterr()
+  assert export.main([str(run), "--poses", str(wrong)]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and err[0].startswith(f"ofjax: error: {wrong}: only 0% "), err
+  assert (run / "mesh.ply").read_bytes() == old and _listing(run) == before
+  out = run.parent / "kept.ply"
+  assert export.main([str(run), "--keep-hidden", "--out", str(out)]) == 0
+  assert len(trimesh.load(out, process=False).faces) > 0
