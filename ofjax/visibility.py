@@ -4,8 +4,10 @@ A neural SDF is unconstrained where no ray reaches: inside a solid part (a pilla
 turn positive and leave closed pockets and tunnels whose walls marching cubes extracts with the
 outer surface. No WLI scan or OM photo could have measured them, yet they enter every cross-section,
 volume and mesh -> truth distance. A screened Poisson surface can hold such pockets too. A face is
-kept when its centre lies inside some camera's frame with a clear line of sight to it: towards the
-centre of an OM photo's pinhole, or against the axis of an orthographic WLI scan.
+kept when a point just in front of it (its centre moved SIGHT_OFFSET along its outward normal)
+lies inside some camera's frame with a clear line of sight to it: towards the centre of an OM
+photo's pinhole, or against the axis of an orthographic WLI scan. The offset keeps the walls a
+scan sees edge-on: a ray down a vertical wall would graze the rim above it.
 
 Cameras come as a poses file's contents (`ofjax.scene.poses_to_json`: per camera its modality,
 width, height, intrinsics and c2w in um), the file every run directory keeps beside config.json.
@@ -21,26 +23,30 @@ import trimesh
 from ofjax import scene as scn
 from ofjax.meshquery import MeshQuery
 
-# A face's centre must see past its own face and its neighbours despite float32 ray casting; as a
-# share of the mesh's bounding-box diagonal (0.05 um on a 480 um scene), far below any pocket's
-# depth (microns) and far above float32 rounding there (~1e-5 um).
+# How far in front of a face its line of sight starts, as a share of the mesh's bounding-box
+# diagonal: 0.48 um on a 480 um scene, a quarter of a marching-cubes cell at 192^3 there (so past
+# the cell-scale ripples of a steep wall) and well below the pockets' depth (microns).
+SIGHT_OFFSET = 1e-3
+# Slack for float32 ray casting at the sight's end, as a share of the diagonal (0.05 um there).
 SIGHT_SLACK = 1e-4
 # Beyond this many mesh diagonals an orthographic scan's ray starts: outside everything.
 ORTHO_REACH = 2.0
 
 
 def seen_faces(mesh: trimesh.Trimesh, poses: dict[str, Any]) -> np.ndarray:
-  """[F] bool: the face's centre is inside some camera's frame and nothing of the mesh occludes it.
+  """[F] bool: the point just in front of the face is inside some camera's frame and nothing of
+  the mesh occludes it.
 
   Args:
-    mesh: the surface, in the poses' units (um).
+    mesh: the surface, in the poses' units (um), its faces' normals pointing out of the solid.
     poses: a poses file's contents (`ofjax.scene.poses_to_json`).
   """
-  centres = np.asarray(mesh.triangles_center, np.float64)
-  seen = np.zeros(len(centres), bool)
-  if len(centres) == 0:
+  seen = np.zeros(len(mesh.faces), bool)
+  if len(seen) == 0:
     return seen
   diagonal = float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
+  centres = (np.asarray(mesh.triangles_center, np.float64)
+             + SIGHT_OFFSET * diagonal * np.asarray(mesh.face_normals, np.float64))
   query = MeshQuery.of(mesh)
   for cam in poses["cameras"]:
     todo = np.flatnonzero(~seen)

@@ -55,6 +55,10 @@ def test_a_pocket_inside_a_block_is_hidden_and_the_top_is_seen(modality):
   assert seen[top].all()
   bottom = mesh.face_normals[:, 2] < -0.99
   assert not seen[bottom & ~in_pocket].any()  # the block's underside, behind its top
+  walls = ~in_pocket & (np.abs(mesh.face_normals[:, 2]) < 0.01)
+  # A scan straight down sees the vertical walls edge-on (kept); a pinhole above the block's
+  # middle sees them from behind their plane (dropped).
+  assert seen[walls].all() if modality == "wli" else not seen[walls].any()
 
 
 def test_a_face_outside_every_frame_is_hidden():
