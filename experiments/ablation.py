@@ -203,7 +203,7 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
                                           "--poses", p["poses"])
     log(f"ablation: re-evaluating {r['name']} {' '.join(eval_args(job))}")
     new = _evaluated(job, stages, res.get("git"))
-    r["result"] = {**new, "eval_git": git_state()}
+    r["result"] = {**new, "eval_git": git_state(), **({"mesh_remade": True} if stale_mesh else {})}
     fileio.write_json(job.result, {k: v for k, v in r.items() if k != "skipped"})
   return records
 
@@ -544,17 +544,18 @@ def commits_line(records: list[dict]) -> str:
       variants[r["job"]["variant"]] = variants.get(r["job"]["variant"], 0) + 1
   parts = [f"`{c}` {sum(v.values())} (" + ", ".join(f"{LABELS.get(k, k)} {n}" for k, n in v.items())
            + ")" for c, v in by_commit.items()]
-  again: dict[str, int] = {}  # meshes exported again from their checkpoints, by commit
+  again: dict[str, int] = {}  # meshes made again (`reevaluate`), by commit
   for r in records:
     res = r.get("result", {})
-    if "export" in res.get("stages_s", {}) and "eval_git" in res:
+    if ("export" in res.get("stages_s", {}) or res.get("mesh_remade")) and "eval_git" in res:
       c = res["eval_git"]["commit"][:7]
       again[c] = again.get(c, 0) + 1
   return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
           "unchanged): " + "; ".join(parts) + "."
-          + "".join(f" {n} of their meshes exported again from the runs' last checkpoints and "
-                    f"evaluated at `{c}` (the export's vertex refinement changed)."
-                    for c, n in again.items()))
+          + "".join(f" {n} of their meshes made again (neural ones exported from the runs' last "
+                    f"checkpoints, Poisson ones reconstructed) and evaluated at `{c}`: the mesh "
+                    "making changed since they ran (the vertex refinement; the faces no camera "
+                    "sees dropped)." for c, n in again.items()))
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:

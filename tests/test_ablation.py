@@ -76,6 +76,8 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
   assert out[0]["result"]["stages_s"] == {"train": 5.0, "eval": 2.0}
   assert out[3]["result"]["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
+  assert [r["result"].get("mesh_remade", False) for r in (out[0], out[3], out[5], out[6])] == [
+      False, True, True, True]
   assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
   stored = json.loads(Path(old.result).read_text())
   assert stored["result"]["eval"] == {"chamfer_um": 1.0} and "skipped" not in stored
@@ -152,8 +154,10 @@ def test_commits_line_counts_runs_and_the_meshes_exported_again(tmp_path):
   records[1]["result"]["eval_git"] = {"commit": "b" * 40}
   line = ablation.commits_line(records)
   assert "`aaaaaaa` 2 (Fused 1, WLI only 1)" in line
-  assert "1 of their meshes exported again" in line and "`bbbbbbb`" in line
-  assert "exported again" not in ablation.commits_line(records[:1])
+  assert "1 of their meshes made again" in line and "`bbbbbbb`" in line
+  assert "made again" not in ablation.commits_line(records[:1])
+  records[0]["result"].update(mesh_remade=True, eval_git={"commit": "b" * 40})  # a Poisson remade
+  assert "2 of their meshes made again" in ablation.commits_line(records)
 
 
 def test_section_of_a_sphere_is_the_circle_of_its_plane():
