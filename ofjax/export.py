@@ -20,7 +20,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -190,9 +190,20 @@ def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolu
                       box[0], box[1], resolution, norm, min_component, refine_steps)
 
 
+class Exported(NamedTuple):
+  path: Path  # the mesh file written
+  hidden: float  # share of the extracted faces dropped because no camera sees them (0 if kept)
+
+  def describe(self) -> str:
+    """The path, and the dropped share when faces were dropped (what a user sees as holes)."""
+    if self.hidden == 0:
+      return str(self.path)
+    return f"{self.path} ({self.hidden:.1%} of the faces, seen by no camera, dropped)"
+
+
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
                units: str = "um", refine_steps: int = REFINE_STEPS,
-               poses: dict | None = None, poses_path: str | Path = POSES) -> Path:
+               poses: dict | None = None, poses_path: str | Path = POSES) -> Exported:
   """Extracts and writes the mesh; refuses non-finite parameters (a diverged run).
 
   poses: the run's cameras (a poses file's contents, `poses_path` names it in messages): the
@@ -204,13 +215,14 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
   if len(mesh.faces) == 0:
     raise UserError(f"{path}: the SDF has no zero crossing in the observed region; train longer "
                     "or check the data")
+  seen = 1.0
   if poses is not None:
     mesh, seen = visibility.drop_hidden(mesh, poses)
     if seen < MIN_SEEN:
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")
-  return write_mesh(mesh, path, units)
+  return Exported(write_mesh(mesh, path, units), 1.0 - seen)
 
 
 def load_run(run_dir: Path):
@@ -277,9 +289,9 @@ def main(argv=None) -> int:
   poses_path = None if args.keep_hidden else run_poses(run_dir, args.poses)
   poses = None if poses_path is None else scene_lib.load_poses(poses_path)
   out = Path(args.out) if args.out else run_dir / f"mesh.{args.format}"
-  path = export_run(params, cfg, norm, box, out, res, units, args.refine_steps, poses,
-                    poses_path or POSES)
-  print(f"ofjax: mesh written to {path}")
+  exported = export_run(params, cfg, norm, box, out, res, units, args.refine_steps, poses,
+                        poses_path or POSES)
+  print(f"ofjax: mesh written to {exported.describe()}")
   return 0
 
 

@@ -534,12 +534,12 @@ def main(argv=None) -> int:
                  meta={"data": str(Path(args.data).resolve()), "poses": args.poses},
                  resume=args.resume)
   from ofjax import export
-  mesh_path = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                                resolution=cfg.train.mesh_resolution, units=scene.units,
-                                poses=scene_lib.poses_to_json(scene))
+  exported = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
+                               resolution=cfg.train.mesh_resolution, units=scene.units,
+                               poses=scene_lib.poses_to_json(scene))
   resumed = f" (resumed at step {result.start})" if result.start else ""
   print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
-        f"{result.skipped} skipped; mesh: {mesh_path}")
+        f"{result.skipped} skipped; mesh: {exported.describe()}")
   return 0
 
 

@@ -1,5 +1,7 @@
 """Mesh export: an analytic sphere SDF comes out as a sphere in um with the colour function's colours."""
 
+from pathlib import Path
+
 import jax.numpy as jnp
 import numpy as np
 import trimesh
@@ -113,3 +115,11 @@ def test_refinement_puts_the_vertices_of_a_bent_sdf_on_its_zero():
   assert (off_grid.sum(1) <= 1).all()
   moved = np.abs(np.asarray(refined_mesh.vertices) - np.asarray(plain_mesh.vertices)).max(1)
   assert (moved <= cell + 1e-9).all()
+
+
+def test_exported_describes_the_dropped_share():
+  """What export and train print: the path alone when every face was kept, else with the share
+  of the faces no camera sees (a user reading holes in the mesh finds why)."""
+  assert export.Exported(Path("m.ply"), 0.0).describe() == "m.ply"
+  assert export.Exported(Path("m.ply"), 0.0475).describe() == (
+      "m.ply (4.8% of the faces, seen by no camera, dropped)")
