@@ -30,9 +30,9 @@ import jax
 import numpy as np
 
 from ofjax import checkpoint, eval as eval_lib, export, fields, fileio, metrics, plots, train
+from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 from ofjax.scene import load_poses
-from ofjax.errors import UserError, cli
 
 
 def _subprocess(*args: str) -> str:

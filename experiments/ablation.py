@@ -513,9 +513,10 @@ def figure(path: Path, scene: str, records: list[dict]):
                                            label=LABELS.get(v, "truth")))
     z = np.concatenate([c[..., 1].ravel() for c in map(on_sample, cuts.values()) if c.size])
     pad = 0.05 * max(z.max() - z.min(), 1e-3)
+    y_label = float(np.round(y)) + 0.0  # + 0.0: a cut at y = -0.2 um is labelled 0, not -0
     for ax, xlim, ylim, title in (
-        (whole, (lo, hi), (z.min() - pad, z.max() + pad), f"cross-section at y = {float(np.round(y)) + 0.0:.0f} um "
-         "(z stretched)"),
+        (whole, (lo, hi), (z.min() - pad, z.max() + pad),
+         f"cross-section at y = {y_label:.0f} um (z stretched)"),
         (zoom, centre[0] + np.array([-half, half]), centre[1] + np.array([-half, half]),
          f"zoom where {LABELS.get(probe, '')} is farthest from the truth (true shape)")):
       ax.set_xlim(*xlim)

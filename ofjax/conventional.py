@@ -177,7 +177,8 @@ def reconstruct(scene: scn.Scene, cfg: BaselineConfig = BaselineConfig()
   out = trimesh.Trimesh(vertices, faces, vertex_colors=np.round(colours * 255).astype(np.uint8),
                         process=False)
   stats = {"wli_points": len(pcd.points), "vertices": len(vertices), "faces": len(faces),
-           "hidden_faces_dropped": hidden, "unseen_vertices": unseen, "wli_pixel_size_um": pixel_size, "seconds": timing}
+           "hidden_faces_dropped": hidden, "unseen_vertices": unseen,
+           "wli_pixel_size_um": pixel_size, "seconds": timing}
   return out, stats
 
 

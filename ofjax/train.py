@@ -368,7 +368,7 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
           "jax": jax.__version__, "backend": jax.default_backend(),
           "ofjax": {"version": ofjax_version, **machine.git_state()}, **prefit_logs,
           **(meta or {})})
-    # The cameras the run was trained with, beside its config: ofjax.export keeps the faces they see.
+    # The cameras the run was trained with, beside its config: ofjax.export keeps what they see.
     from ofjax import export
     fileio.write_json(run_dir / export.POSES, scene_lib.poses_to_json(scene))
   # time_s continues across resumes: it is the training time (the WLI fit's included), not the

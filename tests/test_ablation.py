@@ -70,7 +70,8 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   p = poisson.params
   assert exported == [("export", (stale.params["run_dir"],)),
                       ("export", (hidden.params["run_dir"],)),
-                      ("conventional", (p["scene_dir"], "--out", p["run_dir"], "--poses", p["poses"]))]
+                      ("conventional",
+                       (p["scene_dir"], "--out", p["run_dir"], "--poses", p["poses"]))]
   assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
   assert ablation.eval_args(true) == []
   assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
