@@ -167,19 +167,32 @@ def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
   m = load_mesh(mesh)
   plots.mesh_preview(run_dir / "preview.png", np.asarray(m.vertices), np.asarray(m.faces),
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
-  extracted = {} if job.variant == "conventional" else {"export_refine_steps": export.REFINE_STEPS}
+  extracted = {} if job.variant == "conventional" else {"export_refine_steps": export.REFINE_STEPS,
+                                                         "export_grid": mesh_grid()}
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
           "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job),
           "hidden_dropped": True, **extracted}
+
+
+def mesh_grid() -> dict:
+  """The marching-cubes grid the cpu preset exports at (train.mesh_resolution; 0: cells of
+  AUTO_CELL_PX WLI pixel)."""
+  return {"mesh_resolution": config.resolve("cpu").train.mesh_resolution,
+          "auto_cell_px": export.AUTO_CELL_PX}
+
+
+# The grid of records older than `export_grid`: the cpu preset's 192 cells along the box.
+OLD_GRID = {"mesh_resolution": 192, "auto_cell_px": None}
 
 
 def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
   """Re-runs the evaluation of finished runs that were evaluated with other arguments than
   eval_args gives now (records older than --poses count as none), after making the mesh again
   when it predates this code's: a neural run's is exported again from its last checkpoint when the
-  export's vertex refinement differs (records older than it count as 0 steps) or it kept the faces
-  no camera sees (records without `hidden_dropped`), a Poisson one reconstructed again in the
-  latter case; the training is kept, the record says which commit remade and evaluated it."""
+  export's vertex refinement or grid differs (records older than them count as 0 steps and
+  OLD_GRID) or it kept the faces no camera sees (records without `hidden_dropped`), a Poisson one
+  reconstructed again in the latter case; the training is kept, the record says which commit
+  remade and evaluated it."""
   by_result = {j.result: j for j in jobs}
   for r in records:
     res = r.get("result")
@@ -188,14 +201,17 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
     job = by_result[r["job"]["result"]]
     neural = job.variant != "conventional"
     stale_mesh = (not res.get("hidden_dropped")
-                  or neural and res.get("export_refine_steps", 0) != export.REFINE_STEPS)
+                  or neural and (res.get("export_refine_steps", 0) != export.REFINE_STEPS
+                                 or res.get("export_grid", OLD_GRID) != mesh_grid()))
     if res.get("eval_args", []) == eval_args(job) and not stale_mesh:
       continue
     stages = {k: v for k, v in res["stages_s"].items() if k not in ("eval", "export")}
     if stale_mesh and neural:
+      grid = mesh_grid()
       log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps, "
-          "hidden faces dropped)")
-      _, stages["export"] = run_cli("export", res["run_dir"])
+          f"grid {grid}, hidden faces dropped)")
+      _, stages["export"] = run_cli("export", res["run_dir"], "--resolution",
+                                    str(grid["mesh_resolution"]))
     elif stale_mesh:
       log(f"ablation: reconstructing {r['name']} again (hidden faces dropped)")
       p = job.params

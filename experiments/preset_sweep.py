@@ -58,8 +58,7 @@ def run_variant(job: sweep.Job) -> dict:
   result = train.train(scene, cfg, run_dir, progress=p["progress"],
                        meta={"data": p["scene_dir"], "poses": p["poses"]})
   mesh = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                           resolution=cfg.train.mesh_resolution, units=scene.units,
-                           poses=scene_lib.poses_to_json(scene)).path
+                           units=scene.units, poses=scene_lib.poses_to_json(scene)).path
   out, _ = ablation.run_cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--poses",
                            p["poses"], "--json")
   ev = json.loads(out.strip().splitlines()[-1])

@@ -70,7 +70,7 @@ def crossing_offsets(t, f, s_per_um: float) -> dict[str, np.ndarray]:
 
 def run_offsets(scene_dir: Path, run_dir: Path, stride: int) -> dict[str, np.ndarray | float]:
   """crossing_offsets of one trained run on the first scan, plus the renderer's depth - D."""
-  params, cfg, norm, _, _ = export.load_run(run_dir)
+  params, cfg, norm, *_ = export.load_run(run_dir)
   scene = scene_lib.load_scene(scene_dir, poses=scene_dir / "ground_truth" / "poses.json")
   unit = float(train.reference_scale(train.prepare_data(scene, norm), cfg))
   s_norm = unit * float(fields.inv_s(params))  # per normalised unit, as training renders

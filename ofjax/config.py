@@ -126,7 +126,10 @@ class TrainConfig:
   checkpoint_every: int = 5000  # checkpoint every k steps
   keep_checkpoints: int = 2  # how many checkpoints to keep
   max_skipped_in_a_row: int = 20  # divergence guard: this many non-finite steps in a row stop
-  mesh_resolution: int = 256  # marching-cubes grid along the longest side of the observed box
+  # Marching-cubes cells along the longest side of the observed box; 0: cells of half a WLI pixel
+  # (ofjax.export.AUTO_CELL_PX, at most export.MAX_AUTO_RESOLUTION), so the mesh keeps the detail
+  # the WLI measured at its own lateral sampling.
+  mesh_resolution: int = 0
   box_margin: float = 0.05  # margin around the WLI points, fraction of the box, before normalising
   # The length unit of the WLI depth loss, NeuS's s and the sparsity term, as a fraction of the
   # WLI field of view (the median scan's width). 0.1 is the reference code's unit: its WLI image
@@ -138,6 +141,14 @@ class TrainConfig:
   def __post_init__(self):
     if not 0.0 < self.wli_share < 1.0:
       raise ValueError(f"train.wli_share {self.wli_share}: use a fraction strictly between 0 and 1")
+    if self.mesh_resolution < 0:
+      raise ValueError(f"train.mesh_resolution {self.mesh_resolution}: use a cell count, or 0 for "
+                       "cells of half a WLI pixel")
+
+
+# TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
+# change them, and Config.fingerprint leaves them out.
+KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -171,8 +182,11 @@ class Config:
     return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
   def fingerprint(self) -> str:
-    """8 hex digits of the resolved values: runs with equal fingerprints trained alike."""
-    return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:8]
+    """8 hex digits of the resolved values but KEEPING_FIELDS: runs with equal fingerprints
+    trained alike (how they were kept or meshed may differ)."""
+    d = self.to_dict()
+    d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 
 PRESETS: dict[str, Config] = {
@@ -224,7 +238,7 @@ PRESETS: dict[str, Config] = {
                             cos_anneal_steps=1000, wli_guided_samples=8),
         optim=OptimConfig(warmup_steps=100, ema_fraction=0.05),
         train=TrainConfig(steps=1200, n_rays=512, log_every=50, checkpoint_every=400,
-                          mesh_resolution=192, wli_surface_points=4096),
+                          wli_surface_points=4096),
         preset="cpu",
     ),
 }

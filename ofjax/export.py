@@ -4,11 +4,13 @@
 [--poses FILE | --keep-hidden]`
 
 The SDF is evaluated in chunks on a grid over the observed region (the WLI points' box, stored in
-the run's config.json), the zero level set is extracted with scikit-image, every vertex is moved
-along its grid edge from the linear interpolation to the SDF's own zero (K bisection steps, default
-REFINE_STEPS; 0 keeps marching cubes' interpolation), floating components
-smaller than `min_component` of the largest are dropped, vertex colours come from G(x, n, f) only
-(paper Sec. 3.3.2: no view-dependent highlights), and coordinates are mapped back to micrometres.
+the run's config.json) whose cells are half a WLI pixel (`grid_resolution`; or N cells along the
+box's longest side, from --resolution or the run's train.mesh_resolution), the zero level set is
+extracted with scikit-image, every vertex is moved along its grid edge from the linear
+interpolation to the SDF's own zero (K bisection steps, default REFINE_STEPS; 0 keeps marching
+cubes' interpolation), floating components smaller than `min_component` of the largest are
+dropped, vertex colours come from G(x, n, f) only (paper Sec. 3.3.2: no view-dependent
+highlights), and coordinates are mapped back to micrometres.
 Last, the faces no camera of the run can see are dropped (`ofjax.visibility`: the pockets the SDF
 leaves inside solid parts); the cameras are the run's poses.json (written by `ofjax.train`), or
 --poses for a run trained before it; --keep-hidden keeps every face.
@@ -45,6 +47,15 @@ REFINE_STEPS = 6
 # synthetic scenes, where the rest are pockets inside solid parts).
 MIN_SEEN = 0.5
 POSES = "poses.json"  # the cameras a run was trained with, in its directory
+# The automatic grid's cell, in WLI pixels. The WLI samples the surface once per pixel, and a grid
+# resolves detail down to about two of its cells, so half a pixel keeps what the scans measured.
+# On `wing` (600 steps, fused, its ridges 1-2.5 um apart, pixel 1.41 um), Chamfer 0.179 / 0.159 /
+# 0.145 / 0.142 um at 192 / 256 / 384 / 512 cells (1.41 / 1.06 / 0.71 / 0.53 px): finer than half a
+# pixel gains little (experiments/README.md).
+AUTO_CELL_PX = 0.5
+# The automatic grid's cap along the box's longest side: the SDF on a 1024 x 1024 grid over a flat
+# sample ~150 cells deep is ~0.6 GB (float32); a finer grid takes an explicit --resolution.
+MAX_AUTO_RESOLUTION = 1024
 
 
 def evaluate_chunked(fn: Callable, x: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
@@ -59,10 +70,50 @@ def evaluate_chunked(fn: Callable, x: np.ndarray, chunk: int = CHUNK) -> np.ndar
   return np.concatenate(out, 0) if out else np.zeros((0,))
 
 
+def wli_pixel_um(poses: dict) -> float | None:
+  """The median WLI pixel (mean of its two sides) of a poses file's cameras; None without WLI."""
+  sizes = [float(np.mean(c["intrinsics"]["pixel_size"])) for c in poses.get("cameras", [])
+           if c.get("modality") == "wli"]
+  return float(np.median(sizes)) if sizes else None
+
+
+def grid_resolution(mesh_resolution: int, box, norm: scene_lib.Normalization,
+                    poses: dict | None) -> int:
+  """Marching-cubes cells along the box's longest side: mesh_resolution when positive, else as many
+  as make a cell AUTO_CELL_PX WLI pixels (poses: the run's cameras), at most MAX_AUTO_RESOLUTION.
+
+  box: (lo, hi) normalised; norm maps it to um.
+  """
+  if mesh_resolution > 0:
+    return mesh_resolution
+  pixel = None if poses is None else wli_pixel_um(poses)
+  if pixel is None:
+    raise UserError("the mesh grid is set from the WLI pixel size, and no WLI camera is at hand; "
+                    "pass --resolution N (cells along the longest side)")
+  longest_um = float(np.max(np.asarray(box[1]) - np.asarray(box[0]))) * norm.scale
+  return int(min(np.ceil(longest_um / (AUTO_CELL_PX * pixel)), MAX_AUTO_RESOLUTION))
+
+
 def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
   """Cells per axis: `resolution` along the longest side, the same spacing on the others."""
   ext = np.asarray(hi) - np.asarray(lo)
   return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
+
+
+def grid_values(fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
+                chunk: int = CHUNK) -> np.ndarray:
+  """[X, Y, Z] float32 values of a point function at the nodes lo + index * spacing.
+
+  The nodes are made one chunk at a time, so memory holds the values, not the grid's points
+  (a 1024-cell grid's points alone would be ~20x its float32 values).
+  """
+  n = int(np.prod(shape))
+  out = np.empty(n, np.float32)
+  for i in range(0, n, chunk):
+    flat = np.arange(i, min(i + chunk, n))
+    pts = lo + np.stack(np.unravel_index(flat, shape), -1) * spacing
+    out[i:i + len(flat)] = evaluate_chunked(fn, pts, chunk)
+  return out.reshape(shape)
 
 
 def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int = REFINE_STEPS,
@@ -78,12 +129,10 @@ def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int 
   """
   lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
   shape = grid_shape(lo, hi, resolution)
-  axes = [np.linspace(lo[i], hi[i], shape[i]) for i in range(3)]
-  pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-  vol = evaluate_chunked(sdf_fn, pts).reshape(shape)
+  spacing = (hi - lo) / (np.asarray(shape) - 1)
+  vol = grid_values(sdf_fn, lo, spacing, shape)
   if not (vol.min() < 0 < vol.max()):
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
-  spacing = (hi - lo) / (np.asarray(shape) - 1)
   verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=tuple(spacing))
   # scikit-image orients faces towards increasing values; the SDF grows outwards, so this is
   # already outward. (Checked by tests/test_export.py on a sphere.)
@@ -193,22 +242,28 @@ def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolu
 class Exported(NamedTuple):
   path: Path  # the mesh file written
   hidden: float  # share of the extracted faces dropped because no camera sees them (0 if kept)
+  cell: float  # the marching-cubes grid's cell in `units`: finer detail is not in the mesh
+  units: str  # the mesh's length unit
 
   def describe(self) -> str:
-    """The path, and the dropped share when faces were dropped (what a user sees as holes)."""
-    if self.hidden == 0:
-      return str(self.path)
-    return f"{self.path} ({self.hidden:.1%} of the faces, seen by no camera, dropped)"
+    """The path, the grid's cell, and the dropped share when faces were dropped (what a user sees
+    as holes)."""
+    dropped = f"; {self.hidden:.1%} of the faces, seen by no camera, dropped" if self.hidden else ""
+    return f"{self.path} (grid cell {self.cell:.3g} {self.units}{dropped})"
 
 
-def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
+def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | None = None,
                units: str = "um", refine_steps: int = REFINE_STEPS,
                poses: dict | None = None, poses_path: str | Path = POSES) -> Exported:
   """Extracts and writes the mesh; refuses non-finite parameters (a diverged run).
 
+  resolution: grid cells along the box's longest side; None: `grid_resolution` of
+    cfg.train.mesh_resolution with `poses`.
   poses: the run's cameras (a poses file's contents, `poses_path` names it in messages): the
     faces none of them sees are dropped (`ofjax.visibility`); None keeps every face.
   """
+  if resolution is None:
+    resolution = grid_resolution(cfg.train.mesh_resolution, box, norm, poses)
   if not all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree_util.tree_leaves(params)):
     raise UserError(f"{path}: the parameters are not finite (the run diverged); no mesh written")
   mesh = extract_mesh(params, cfg, norm, box, resolution, refine_steps=refine_steps)
@@ -222,12 +277,21 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int,
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")
-  return Exported(write_mesh(mesh, path, units), 1.0 - seen)
+  cell = float(np.max(np.asarray(box[1]) - np.asarray(box[0]))) * norm.scale / resolution
+  return Exported(write_mesh(mesh, path, units), 1.0 - seen, cell, units)
 
 
-def load_run(run_dir: Path):
-  """(params, cfg, norm, box, units) of a run directory's newest checkpoint; params are the average
-  the mesh is made from when the run keeps one (optim.ema_fraction)."""
+class LoadedRun(NamedTuple):
+  params: dict  # the newest checkpoint's, or their average when the run keeps one (ema_fraction)
+  cfg: Config
+  norm: scene_lib.Normalization
+  box: tuple  # (lo, hi) of the observed region, normalised
+  units: str
+  poses_named: str | None  # the poses file the run was trained from (config.json "poses")
+
+
+def load_run(run_dir: Path) -> LoadedRun:
+  """A run directory's newest checkpoint and what its config.json says about it."""
   cfg_path = run_dir / "config.json"
   if not cfg_path.is_file():
     raise UserError(f"{cfg_path}: not found; is {run_dir} an ofjax run directory?")
@@ -245,21 +309,23 @@ def load_run(run_dir: Path):
   norm = scene_lib.Normalization(tuple(meta["normalization"]["center"]),
                                  float(meta["normalization"]["scale"]))
   box = tuple(tuple(b) for b in meta["observed_box"])
-  return params, cfg, norm, box, meta.get("units", "um")
+  return LoadedRun(params, cfg, norm, box, meta.get("units", "um"), meta.get("poses"))
 
 
-def run_poses(run_dir: Path, given: str | None) -> Path:
-  """The poses file of a run's cameras: `given`, else the run's own, else the one its config.json
-  names (runs trained before the run directory kept its own)."""
+def run_poses(run_dir: Path, given: str | None, named: str | None, instead: str) -> Path:
+  """The poses file of a run's cameras: `given`, else the run's own, else `named` (the one its
+  config.json names: runs trained before the run directory kept its own).
+
+  instead: the option that does without poses, for the message when none is found.
+  """
   if given:
     return Path(given)
   if (run_dir / POSES).is_file():
     return run_dir / POSES
-  named = json.loads((run_dir / "config.json").read_text()).get("poses")
   if named and Path(named).is_file():
     return Path(named)
   raise UserError(f"{run_dir / POSES}: not found (the run predates it); pass the poses it was "
-                  "trained with (--poses FILE), or --keep-hidden to keep every face")
+                  f"trained with (--poses FILE), or {instead}")
 
 
 @cli
@@ -267,7 +333,9 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m ofjax.export",
                               description="Export the mesh (um, vertex colours) of a training run.")
   p.add_argument("run_dir", help="run directory written by python -m ofjax.train")
-  p.add_argument("--resolution", type=int, help="grid cells along the longest side")
+  p.add_argument("--resolution", type=int,
+                 help="grid cells along the box's longest side (default: the run's "
+                      f"train.mesh_resolution; 0 there or here: cells of {AUTO_CELL_PX} WLI pixel)")
   p.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
                  help="bisection steps that move each vertex to the SDF's zero along its grid edge "
                       f"(default {REFINE_STEPS}; 0: marching cubes' linear interpolation)")
@@ -280,16 +348,23 @@ def main(argv=None) -> int:
                      help="keep the faces no camera sees (pockets inside solid parts)")
   args = p.parse_args(argv)
   run_dir = Path(args.run_dir)
-  params, cfg, norm, box, units = load_run(run_dir)
-  res = args.resolution or cfg.train.mesh_resolution
-  if res < 8:
-    raise UserError(f"--resolution {res}: use at least 8 cells")
+  if args.resolution is not None and 0 < args.resolution < 8:
+    raise UserError(f"--resolution {args.resolution}: use at least 8 cells, or 0 for cells of "
+                    f"{AUTO_CELL_PX} WLI pixel")
   if args.refine_steps < 0:
     raise UserError(f"--refine-steps {args.refine_steps}: use 0 or more")
-  poses_path = None if args.keep_hidden else run_poses(run_dir, args.poses)
+  run = load_run(run_dir)
+  setting = run.cfg.train.mesh_resolution if args.resolution is None else args.resolution
+  # The cameras decide which faces are kept and, for the automatic grid, the WLI pixel.
+  need_poses = not args.keep_hidden or setting == 0
+  poses_path = run_poses(run_dir, args.poses, run.poses_named,
+                         "--resolution N" if args.keep_hidden else "--keep-hidden to keep every "
+                         "face") if need_poses else None
   poses = None if poses_path is None else scene_lib.load_poses(poses_path)
+  res = grid_resolution(setting, run.box, run.norm, poses)
   out = Path(args.out) if args.out else run_dir / f"mesh.{args.format}"
-  exported = export_run(params, cfg, norm, box, out, res, units, args.refine_steps, poses,
+  exported = export_run(run.params, run.cfg, run.norm, run.box, out, res, run.units,
+                        args.refine_steps, None if args.keep_hidden else poses,
                         poses_path or POSES)
   print(f"ofjax: mesh written to {exported.describe()}")
   return 0

@@ -35,7 +35,7 @@ from ofjax import __version__ as ofjax_version
 from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, machine, parallel,
                    prefit, render)
 from ofjax import scene as scene_lib
-from ofjax.config import Config, resolve_spec, with_steps, PRESETS
+from ofjax.config import KEEPING_FIELDS, PRESETS, Config, resolve_spec, with_steps
 from ofjax.errors import UserError, cli
 
 MODALITIES = ("wli", "om")
@@ -278,8 +278,6 @@ def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
 # --------------------------------------------------------------------------------------- the run
 
 METRICS = "metrics.jsonl"
-# Options that only say how a run is kept, not what it computes: --resume may change them.
-KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
 
 
 @dataclasses.dataclass
@@ -430,7 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--um-per-unit", type=float,
                  help="micrometres per unit of an OpticFusion-layout scene")
   p.add_argument("--layout", choices=["native", "opticfusion", "raw"], help="force the data layout")
-  p.add_argument("--mesh-resolution", type=int, help="marching-cubes resolution of mesh.ply")
+  p.add_argument("--mesh-resolution", type=int,
+                 help="marching-cubes cells along the longest side of mesh.ply's box (default: "
+                      "cells of half a WLI pixel)")
   p.add_argument("--checkpoint-every", type=int,
                  help="write a checkpoint every N steps (default: the preset's)")
   p.add_argument("--keep-checkpoints", type=int, help="keep the newest K checkpoints (default: "
@@ -535,8 +535,7 @@ def main(argv=None) -> int:
                  resume=args.resume)
   from ofjax import export
   exported = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                               resolution=cfg.train.mesh_resolution, units=scene.units,
-                               poses=scene_lib.poses_to_json(scene))
+                               units=scene.units, poses=scene_lib.poses_to_json(scene))
   resumed = f" (resumed at step {result.start})" if result.start else ""
   print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
         f"{result.skipped} skipped; mesh: {exported.describe()}")

@@ -43,7 +43,8 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
     calls.append(job.name)
     return {"eval": {"chamfer_um": 1.0}, "stages_s": {**stages, "eval": 2.0},
             "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job),
-            "export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True}
+            "export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True,
+            "export_grid": ablation.mesh_grid()}
 
   def fake_cli(module, *args):
     exported.append((module, args))
@@ -56,29 +57,36 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   hidden, poisson, poisson_now = (_job(tmp_path, "true", "fused_nores"),
                                   _job(tmp_path, "true", "conventional"),
                                   _job(tmp_path, "associate", "conventional"))
-  now = {"export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True}
+  now = {"export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True,
+         "export_grid": ablation.mesh_grid()}
+  coarse = _job(tmp_path, "associate", "fused_nores")  # meshed on the grid before export_grid
+  now_but_grid = {k: v for k, v in now.items() if k != "export_grid"}
   records = [_finished(old, **now), _finished(true, eval_args=[], **now),
              _finished(current, eval_args=ablation.eval_args(current), **now),
              _finished(stale, eval_args=[]),  # exported before the refinement: 0 steps
              {"job": {"result": "x"}, "name": "failed", "error": "boom"},
              _finished(hidden, eval_args=[], export_refine_steps=ablation.export.REFINE_STEPS),
              _finished(poisson, eval_args=[]),
-             _finished(poisson_now, eval_args=ablation.eval_args(poisson_now), hidden_dropped=True)]
-  out = ablation.reevaluate(records, [old, true, current, stale, hidden, poisson, poisson_now],
-                            log=lambda m: None)
-  assert calls == [old.name, stale.name, hidden.name, poisson.name]
+             _finished(poisson_now, eval_args=ablation.eval_args(poisson_now), hidden_dropped=True),
+             _finished(coarse, eval_args=ablation.eval_args(coarse), **now_but_grid)]
+  out = ablation.reevaluate(records, [old, true, current, stale, hidden, poisson, poisson_now,
+                                      coarse], log=lambda m: None)
+  assert calls == [old.name, stale.name, hidden.name, poisson.name, coarse.name]
   p = poisson.params
-  assert exported == [("export", (stale.params["run_dir"],)),
-                      ("export", (hidden.params["run_dir"],)),
+  grid = ("--resolution", str(ablation.mesh_grid()["mesh_resolution"]))
+  assert grid == ("--resolution", "0")  # the cpu preset's: cells of half a WLI pixel
+  assert exported == [("export", (stale.params["run_dir"], *grid)),
+                      ("export", (hidden.params["run_dir"], *grid)),
                       ("conventional",
-                       (p["scene_dir"], "--out", p["run_dir"], "--poses", p["poses"]))]
+                       (p["scene_dir"], "--out", p["run_dir"], "--poses", p["poses"])),
+                      ("export", (coarse.params["run_dir"], *grid))]
   assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
   assert ablation.eval_args(true) == []
   assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
   assert out[0]["result"]["stages_s"] == {"train": 5.0, "eval": 2.0}
   assert out[3]["result"]["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
-  assert [r["result"].get("mesh_remade", False) for r in (out[0], out[3], out[5], out[6])] == [
-      False, True, True, True]
+  assert [r["result"].get("mesh_remade", False)
+          for r in (out[0], out[3], out[5], out[6], out[8])] == [False, True, True, True, True]
   assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
   stored = json.loads(Path(old.result).read_text())
   assert stored["result"]["eval"] == {"chamfer_um": 1.0} and "skipped" not in stored

@@ -57,6 +57,11 @@ def test_fingerprint_follows_the_resolved_values_not_the_spelling():
   assert config.resolve_spec("cpu+optim.lr_inv_s=0.01").fingerprint() != cpu.fingerprint()
   assert config.Config.from_dict(cpu.to_dict()).fingerprint() == cpu.fingerprint()
   assert len(cpu.fingerprint()) == 8 and int(cpu.fingerprint(), 16) >= 0
+  # How a run is kept and meshed is not what it trained: the fingerprint leaves those fields out.
+  for field, value in (("mesh_resolution", 384), ("checkpoint_every", 7), ("keep_checkpoints", 9),
+                       ("max_skipped_in_a_row", 3)):
+    assert config.resolve("cpu", train={field: value}).fingerprint() == cpu.fingerprint(), field
+  assert config.resolve("cpu", train={"n_rays": 256}).fingerprint() != cpu.fingerprint()
 
 
 def test_with_steps_shortens_the_schedule_with_the_run():

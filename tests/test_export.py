@@ -4,10 +4,12 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import trimesh
 
 from ofjax import export, meshfile
 from ofjax import scene as scene_lib
+from ofjax.errors import UserError
 
 RADIUS = 0.6  # normalised units
 NORM = scene_lib.Normalization(center=(100.0, -50.0, 20.0), scale=250.0)  # um
@@ -117,9 +119,47 @@ def test_refinement_puts_the_vertices_of_a_bent_sdf_on_its_zero():
   assert (moved <= cell + 1e-9).all()
 
 
-def test_exported_describes_the_dropped_share():
-  """What export and train print: the path alone when every face was kept, else with the share
-  of the faces no camera sees (a user reading holes in the mesh finds why)."""
-  assert export.Exported(Path("m.ply"), 0.0).describe() == "m.ply"
-  assert export.Exported(Path("m.ply"), 0.0475).describe() == (
-      "m.ply (4.8% of the faces, seen by no camera, dropped)")
+def test_exported_describes_the_grid_and_the_dropped_share():
+  """What export and train print: the path and the grid's cell (finer detail is not in the mesh),
+  with the share of the faces no camera sees when some were dropped (a user reading holes in the
+  mesh finds why)."""
+  assert export.Exported(Path("m.ply"), 0.0, 0.7039, "um").describe() == (
+      "m.ply (grid cell 0.704 um)")
+  assert export.Exported(Path("m.ply"), 0.0475, 2.25, "um").describe() == (
+      "m.ply (grid cell 2.25 um; 4.8% of the faces, seen by no camera, dropped)")
+
+
+def _poses(pixel_sizes, n_om=1):
+  """A poses file's contents with WLI cameras of these pixel sizes and some OM cameras."""
+  wli = [{"name": f"wli/{i}", "modality": "wli", "intrinsics": {"model": "orthographic",
+          "pixel_size": [p, p]}} for i, p in enumerate(pixel_sizes)]
+  om = [{"name": f"om/{i}", "modality": "om", "intrinsics": {"model": "pinhole"}}
+        for i in range(n_om)]
+  return {"cameras": wli + om}
+
+
+def test_automatic_grid_has_cells_of_half_a_wli_pixel():
+  box = ((-0.8, -0.6, -0.2), (0.8, 0.6, 0.3))  # normalised; longest side 1.6 = 400 um
+  assert export.wli_pixel_um(_poses([1.0, 1.4, 2.0])) == 1.4  # the median scan's
+  assert export.wli_pixel_um(_poses([])) is None
+  res = export.grid_resolution(0, box, NORM, _poses([1.4]))
+  assert res == int(np.ceil(400.0 / 0.7)) == 572
+  assert 400.0 / res <= 0.7 < 400.0 / (res - 1)  # the coarsest grid whose cell is <= 0.5 px
+  assert export.grid_resolution(96, box, NORM, None) == 96  # an explicit count needs no camera
+  # A fine pixel over a wide box: capped (memory), the cell then coarser than half a pixel.
+  assert export.grid_resolution(0, box, NORM, _poses([0.05])) == export.MAX_AUTO_RESOLUTION
+  for poses in (None, _poses([])):
+    with pytest.raises(UserError, match="--resolution N"):
+      export.grid_resolution(0, box, NORM, poses)
+
+
+def test_grid_values_match_the_dense_grid():
+  """The grid's values, made one chunk of nodes at a time, against all nodes at once in float64
+  (a chunk that does not divide the node count, so the last one is partial)."""
+  lo, spacing, shape = np.array([-1.0, -0.5, 0.2]), np.array([0.1, 0.05, 0.3]), (7, 5, 4)
+  fn = lambda x: jnp.sin(3 * x[:, 0]) + x[:, 1] * x[:, 2]
+  got = export.grid_values(fn, lo, spacing, shape, chunk=9)
+  axes = [lo[i] + np.arange(shape[i]) * spacing[i] for i in range(3)]
+  x, y, z = np.meshgrid(*axes, indexing="ij")
+  assert got.shape == shape and got.dtype == np.float32
+  np.testing.assert_allclose(got, np.sin(3 * x) + y * z, atol=1e-5)

@@ -229,3 +229,33 @@ def test_export_refuses_poses_the_run_was_not_trained_with(trained, run_copy, ca
   out = run.parent / "kept.ply"
   assert export.main([str(run), "--keep-hidden", "--out", str(out)]) == 0
   assert len(trimesh.load(out, process=False).faces) > 0
+
+
+@pytest.mark.slow
+def test_export_grid_follows_the_wli_pixel(trained, run_copy, capsys):
+  """`--resolution 0`: cells of half the run's WLI pixel along the box's longest side (config.json
+  and poses.json give both), printed with the path. Without the run's poses and with
+  --keep-hidden, the pixel is unknown: one line asking for --resolution N, exit 2."""
+  from ofjax import export
+  from ofjax import scene as scn
+  run, old = run_copy
+  meta = json.loads((run / "config.json").read_text())
+  lo, hi = np.asarray(meta["observed_box"])
+  longest_um = (hi - lo).max() * meta["normalization"]["scale"]
+  pixels = [np.mean(c["intrinsics"]["pixel_size"])
+            for c in scn.load_poses(run / "poses.json")["cameras"] if c["modality"] == "wli"]
+  half_pixel = 0.5 * float(np.median(pixels))
+  capsys.readouterr()
+  out = run.parent / "auto.ply"
+  assert export.main([str(run), "--resolution", "0", "--out", str(out)]) == 0
+  printed = capsys.readouterr().out
+  cell = float(printed.split("grid cell ")[1].split(" um")[0])
+  cells = np.ceil(longest_um / half_pixel)
+  # printed to 3 digits
+  assert cell == pytest.approx(longest_um / cells, rel=5e-3) and cell <= half_pixel * 1.005
+  assert len(trimesh.load(out, process=False).faces) > 0
+  (run / "poses.json").unlink()
+  assert export.main([str(run), "--keep-hidden", "--resolution", "0", "--out", str(out)]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and str(run / "poses.json") in err[0] and "--resolution N" in err[0], err
+  assert (run / "mesh.ply").read_bytes() == old
