@@ -49,9 +49,9 @@ MIN_SEEN = 0.5
 POSES = "poses.json"  # the cameras a run was trained with, in its directory
 # The automatic grid's cell, in WLI pixels. The WLI samples the surface once per pixel, and a grid
 # resolves detail down to about two of its cells, so half a pixel keeps what the scans measured.
-# On `wing` (600 steps, fused, its ridges 1-2.5 um apart, pixel 1.41 um), Chamfer 0.179 / 0.159 /
-# 0.145 / 0.142 um at 192 / 256 / 384 / 512 cells (1.41 / 1.06 / 0.71 / 0.53 px): finer than half a
-# pixel gains little (experiments/README.md).
+# On `wing` (600 steps, fused, its ridges 1-2.5 um apart, pixel 1.41 um, box 443 um), Chamfer
+# 0.179 / 0.159 / 0.145 / 0.142 um at 192 / 256 / 384 / 512 cells (1.64 / 1.23 / 0.82 / 0.61 px):
+# the gain levels off before half a pixel (experiments/README.md).
 AUTO_CELL_PX = 0.5
 # The automatic grid's cap along the box's longest side: the SDF on a 1024 x 1024 grid over a flat
 # sample ~150 cells deep is ~0.6 GB (float32); a finer grid takes an explicit --resolution.
@@ -100,20 +100,60 @@ def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
   return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
 
 
-def grid_values(fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
-                chunk: int = CHUNK) -> np.ndarray:
-  """[X, Y, Z] float32 values of a point function at the nodes lo + index * spacing.
+def node_values(fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
+                flat: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
+  """[N] float32 values of a point function at the grid nodes with these flat indices.
 
-  The nodes are made one chunk at a time, so memory holds the values, not the grid's points
+  The nodes' points are made one chunk at a time, so memory holds the values, not the points
   (a 1024-cell grid's points alone would be ~20x its float32 values).
   """
-  n = int(np.prod(shape))
-  out = np.empty(n, np.float32)
-  for i in range(0, n, chunk):
-    flat = np.arange(i, min(i + chunk, n))
-    pts = lo + np.stack(np.unravel_index(flat, shape), -1) * spacing
-    out[i:i + len(flat)] = evaluate_chunked(fn, pts, chunk)
-  return out.reshape(shape)
+  out = np.empty(len(flat), np.float32)
+  for i in range(0, len(flat), chunk):
+    part = flat[i:i + chunk]
+    out[i:i + len(part)] = evaluate_chunked(
+        fn, lo + np.stack(np.unravel_index(part, shape), -1) * spacing, chunk)
+  return out
+
+
+# Narrow-band evaluation of the SDF grid. The grid is cut into blocks of BLOCK cells a side and
+# the SDF evaluated at the block corners first; only blocks whose corners differ in sign or lie
+# within BAND block diagonals of the zero level are evaluated at every node. A trained SDF grows
+# about as fast as the distance (the eikonal term), so a block containing surface has a corner
+# within one diagonal of it; BAND = 2 allows a gradient up to twice that. The others hold no
+# surface and take the value of their nearest corner (the same sign: no vertex there).
+BLOCK = 4
+BAND = 2.0
+
+
+def sdf_grid(sdf_fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
+             block: int = BLOCK, band: float = BAND) -> tuple[np.ndarray, float]:
+  """[X, Y, Z] float32 SDF values at the nodes lo + index * spacing, exact near the zero level
+  (see BLOCK), and the share of the nodes evaluated. block=1 evaluates every node."""
+  shape = tuple(int(n) for n in shape)
+  # Block corners: every block-th node, and the last node of each axis.
+  corners = [np.unique(np.r_[np.arange(0, n, block), n - 1]) for n in shape]
+  cidx = np.stack(np.meshgrid(*corners, indexing="ij"), -1).reshape(-1, 3)
+  coarse = node_values(sdf_fn, lo, spacing, shape,
+                       np.ravel_multi_index(tuple(cidx.T), shape)).reshape(
+                           tuple(len(c) for c in corners))
+  if block == 1:
+    return coarse, 1.0
+  # Blocks (between consecutive corners along each axis) that may hold surface.
+  c8 = np.stack([coarse[i:i + coarse.shape[0] - 1, j:j + coarse.shape[1] - 1,
+                        k:k + coarse.shape[2] - 1]
+                 for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+  reach = band * float(np.linalg.norm(spacing * block))
+  active = (c8.min(0) < 0) & (c8.max(0) > 0) | (np.abs(c8).min(0) <= reach)
+  mask = np.zeros(shape, bool)
+  for a, b, c in np.argwhere(active):
+    mask[corners[0][a]:corners[0][a + 1] + 1, corners[1][b]:corners[1][b + 1] + 1,
+         corners[2][c]:corners[2][c + 1] + 1] = True
+  # Every node first takes its nearest corner's value, then the band's nodes their own.
+  nearest = [np.abs(np.arange(n)[:, None] - c[None]).argmin(1) for n, c in zip(shape, corners)]
+  vol = coarse[np.ix_(*nearest)].astype(np.float32)
+  flat = np.flatnonzero(mask)
+  vol.reshape(-1)[flat] = node_values(sdf_fn, lo, spacing, shape, flat)
+  return vol, (len(flat) + len(cidx)) / vol.size
 
 
 def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int = REFINE_STEPS,
@@ -130,7 +170,7 @@ def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int 
   lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
   shape = grid_shape(lo, hi, resolution)
   spacing = (hi - lo) / (np.asarray(shape) - 1)
-  vol = grid_values(sdf_fn, lo, spacing, shape)
+  vol, _ = sdf_grid(sdf_fn, lo, spacing, shape)
   if not (vol.min() < 0 < vol.max()):
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
   verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=tuple(spacing))
