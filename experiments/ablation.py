@@ -572,7 +572,7 @@ def commits_line(records: list[dict]) -> str:
           + "".join(f" {n} of their meshes made again (neural ones exported from the runs' last "
                     f"checkpoints, Poisson ones reconstructed) and evaluated at `{c}`: the mesh "
                     "making changed since they ran (the vertex refinement; the faces no camera "
-                    "sees dropped)." for c, n in again.items()))
+                    "sees dropped; the grid of half a WLI pixel)." for c, n in again.items()))
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:

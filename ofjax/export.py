@@ -128,7 +128,8 @@ BAND = 2.0
 def sdf_grid(sdf_fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
              block: int = BLOCK, band: float = BAND) -> tuple[np.ndarray, float]:
   """[X, Y, Z] float32 SDF values at the nodes lo + index * spacing, exact near the zero level
-  (see BLOCK), and the share of the nodes evaluated. block=1 evaluates every node."""
+  (see BLOCK), and the SDF evaluations made per node (block corners in the band count twice).
+  block=1 evaluates every node once."""
   shape = tuple(int(n) for n in shape)
   # Block corners: every block-th node, and the last node of each axis.
   corners = [np.unique(np.r_[np.arange(0, n, block), n - 1]) for n in shape]
