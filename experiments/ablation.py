@@ -570,9 +570,11 @@ def commits_line(records: list[dict]) -> str:
   return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
           "unchanged): " + "; ".join(parts) + "."
           + "".join(f" {n} of their meshes made again (neural ones exported from the runs' last "
-                    f"checkpoints, Poisson ones reconstructed) and evaluated at `{c}`: the mesh "
-                    "making changed since they ran (the vertex refinement; the faces no camera "
-                    "sees dropped; the grid of half a WLI pixel)." for c, n in again.items()))
+                    f"checkpoints, Poisson ones reconstructed) and evaluated at `{c}`."
+                    for c, n in again.items())
+          + (" A mesh is made again when the mesh making changed after its run: the vertex "
+             "refinement (a0effaf), the faces no camera sees dropped (216466f), the grid of half "
+             "a WLI pixel (42e29fa)." if again else ""))
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:
