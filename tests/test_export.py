@@ -76,7 +76,13 @@ def test_dropped_components_are_not_refined():
   kept = export.marching_cubes(recording, *args, min_component=0.05)
   near_small = [np.abs(np.linalg.norm(q - [0.75, 0.0, 0.0], axis=1) - 0.08) < 0.05
                 for q in queried]
-  grid_calls = -(-np.prod(export.grid_shape(*args)) // export.CHUNK)
+  # The calls that sampled the grid: as many as sdf_grid makes on it alone.
+  lo, hi = np.asarray(args[0], float), np.asarray(args[1], float)
+  shape = export.grid_shape(lo, hi, args[2])
+  grid_queries = []
+  export.sdf_grid(lambda x: grid_queries.append(1) or two_spheres(x), lo,
+                  (hi - lo) / (np.asarray(shape) - 1), shape)
+  grid_calls = len(grid_queries)
   assert np.concatenate(near_small[:grid_calls]).any()  # the grid samples it
   assert not np.concatenate(near_small[grid_calls:]).any()  # the bisection does not
   everything = export.marching_cubes(two_spheres, *args)
@@ -168,21 +174,28 @@ def test_node_values_match_the_dense_grid():
 
 def test_narrow_band_grid_gives_the_dense_grids_mesh():
   """Only blocks near the zero level are evaluated at every node; the mesh is the dense grid's,
-  face for face, for an SDF that grows 1.8x as fast as the distance (a trained one is near 1x),
-  with a thin plate among two spheres and node counts no block size divides."""
+  face for face, for an SDF that grows 1.8x as fast as the distance (BAND allows 2x; a trained
+  one is near 1x), with two spheres, a plate under a quarter of a block thick, and a sphere of
+  one cell's radius at a block's centre (the point farthest from its corners), on node counts
+  no block size divides."""
+  lo, hi = np.array([-1.0, -0.8, -0.7]), np.array([1.0, 0.8, 0.7])
+  shape = export.grid_shape(lo, hi, 101)
+  spacing = (hi - lo) / (np.asarray(shape) - 1)
+  centre = jnp.asarray(lo + (4 * np.array([2, 2, 14]) + 2) * spacing)  # block (2, 2, 14)'s
+
   def sdf(x):
     spheres = jnp.minimum(jnp.linalg.norm(x - jnp.array([0.4, 0.0, 0.0]), axis=-1) - 0.3,
                           jnp.linalg.norm(x + jnp.array([0.45, 0.1, 0.0]), axis=-1) - 0.25)
     plate = jnp.abs(x[:, 2] + 0.5) - 0.02  # 0.04 thick: under a quarter of a block
-    return 1.8 * jnp.minimum(spheres, jnp.maximum(plate, jnp.abs(x[:, 0]) - 0.6))
-  lo, hi = np.array([-1.0, -0.8, -0.7]), np.array([1.0, 0.8, 0.7])
-  shape = export.grid_shape(lo, hi, 101)
-  spacing = (hi - lo) / (np.asarray(shape) - 1)
+    tiny = jnp.linalg.norm(x - centre, axis=-1) - spacing.max()
+    return 1.8 * jnp.minimum(jnp.minimum(spheres, tiny),
+                             jnp.maximum(plate, jnp.abs(x[:, 0]) - 0.6))
+
   dense, share_dense = export.sdf_grid(sdf, lo, spacing, shape, block=1)
   band, share = export.sdf_grid(sdf, lo, spacing, shape)
   assert share_dense == 1.0 and share < 0.5
   np.testing.assert_array_equal(np.sign(band), np.sign(dense))
-  near = np.abs(dense) < 1.8 * np.linalg.norm(spacing * export.BLOCK)
+  near = np.abs(dense) < 1.8 * np.linalg.norm(spacing)  # every node within a cell of the surface
   np.testing.assert_array_equal(band[near], dense[near])
   meshes = [measure.marching_cubes(v, 0.0, spacing=tuple(spacing)) for v in (dense, band)]
   np.testing.assert_array_equal(meshes[0][1], meshes[1][1])
