@@ -71,7 +71,8 @@ def main(argv=None) -> int:
     if args.json:
       print(json.dumps(r), flush=True)
     else:
-      print(f"| {Path(r['run']).name} | {' x '.join(map(str, r['shape']))} | {r['nodes'] / 1e6:.1f} M "
+      grid = " x ".join(map(str, r["shape"]))
+      print(f"| {Path(r['run']).name} | {grid} | {r['nodes'] / 1e6:.1f} M "
             f"| {r['evaluations_per_node']:.3f} | {r['band_s']:.1f} | {r['every_node_s']:.1f} | "
             f"{r['sign_differences']} | {r['faces'][0]:,}, {r['faces'][1]:,} | {r['same_faces']} |",
             flush=True)

@@ -2,8 +2,9 @@
 
 synth (the `seed` scene, quick) -> associate (poses from the raw data) -> train (cpu preset,
 writes mesh.ply) -> eval (against the scene's ground truth) -> roughness of one region (beside
-the same region's on the true surface) and one cross-section profile -> RUN/report.md, with the pictures beside it. Each stage is the same code
-as its own CLI; the report says how long each took.
+the same region's on the true surface) and one cross-section profile -> RUN/report.md, with the
+pictures beside it. Each stage is the same code as its own CLI; the report says how long each
+took.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ofjax import fileio, machine, plots
+from ofjax import fileio, machine, metrology, plots
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 
@@ -45,7 +46,6 @@ def truth_roughness(scene_dir: Path, poses_path: Path, region: tuple[float, ...]
   """ISO 25178-2 parameters of `region` (x0, y0, x1, y1 um in the frame of poses_path) on the
   scene's true surface, sampled like `measure roughness` with n samples along the longer side:
   what the reconstruction's should read."""
-  from ofjax import metrology
   from ofjax.associate.evaluate import gauge
   from ofjax.scene import load_poses
   gt_dir = scene_dir / "ground_truth"
@@ -143,7 +143,7 @@ Error heat maps: `{Path(ev['completeness_png']).name}`, `{Path(ev['accuracy_png'
 ## Roughness (ISO 25178-2) of region {region} um
 The same region on the true surface (moved into the mesh's frame by the poses' gauge, sampled
 alike) for comparison. Heights in um; Ssk and Sku have no unit.
-{_table([(k, fmt(rough[k]), fmt(true_rough[k])) for k in ("Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku")],
+{_table([(k, fmt(rough[k]), fmt(true_rough[k])) for k in metrology.PARAMETERS],
         ("parameter", "mesh", "true surface"))}
 
 Height map: `{Path(rough['png']).name}`. Profile from ({start}) to ({end}) um: `mesh_profile.csv`,
