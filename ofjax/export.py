@@ -79,6 +79,11 @@ def wli_pixel_um(poses: dict) -> float | None:
   return float(np.median(sizes)) if sizes else None
 
 
+def longest_side_um(box, norm: scene_lib.Normalization) -> float:
+  """The longest side of a normalised (lo, hi) box, in the scene's units: what the grid divides."""
+  return float(np.max(np.asarray(box[1]) - np.asarray(box[0]))) * norm.scale
+
+
 def grid_resolution(mesh_resolution: int, box, norm: scene_lib.Normalization,
                     poses: dict | None) -> int:
   """Marching-cubes cells along the box's longest side: mesh_resolution when positive, else as many
@@ -92,8 +97,8 @@ def grid_resolution(mesh_resolution: int, box, norm: scene_lib.Normalization,
   if pixel is None:
     raise UserError("the mesh grid is set from the WLI pixel size, and no WLI camera is at hand; "
                     "pass --resolution N (cells along the longest side)")
-  longest_um = float(np.max(np.asarray(box[1]) - np.asarray(box[0]))) * norm.scale
-  return int(min(np.ceil(longest_um / (AUTO_CELL_PX * pixel)), MAX_AUTO_RESOLUTION))
+  cells = np.ceil(longest_side_um(box, norm) / (AUTO_CELL_PX * pixel))
+  return int(min(cells, MAX_AUTO_RESOLUTION))
 
 
 def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
@@ -322,8 +327,8 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | Non
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")
-  cell = float(np.max(np.asarray(box[1]) - np.asarray(box[0]))) * norm.scale / resolution
-  return Exported(write_mesh(mesh, path, units), 1.0 - seen, cell, units)
+  return Exported(write_mesh(mesh, path, units), 1.0 - seen,
+                  longest_side_um(box, norm) / resolution, units)
 
 
 class LoadedRun(NamedTuple):
