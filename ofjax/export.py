@@ -398,7 +398,7 @@ def main(argv=None) -> int:
                      help="keep the faces no camera sees (pockets inside solid parts)")
   args = p.parse_args(argv)
   run_dir = Path(args.run_dir)
-  if args.resolution is not None and 0 < args.resolution < 8:
+  if args.resolution is not None and (args.resolution < 0 or 0 < args.resolution < 8):
     raise UserError(f"--resolution {args.resolution}: use at least 8 cells, or 0 for cells of "
                     f"{AUTO_CELL_PX} WLI pixel")
   if args.refine_steps < 0:

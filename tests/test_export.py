@@ -200,3 +200,11 @@ def test_narrow_band_grid_gives_the_dense_grids_mesh():
   meshes = [measure.marching_cubes(v, 0.0, spacing=tuple(spacing)) for v in (dense, band)]
   np.testing.assert_array_equal(meshes[0][1], meshes[1][1])
   np.testing.assert_allclose(meshes[0][0], meshes[1][0], atol=1e-6)
+
+
+def test_export_refuses_a_negative_or_tiny_resolution(tmp_path, capsys):
+  """Checked before the run is read: one line naming the option, exit 2 (0 means automatic)."""
+  for bad in ("-3", "5"):
+    assert export.main([str(tmp_path / "no_run"), "--resolution", bad]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--resolution {bad}: use at least 8 cells" in err[0], err
