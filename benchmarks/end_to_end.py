@@ -85,7 +85,8 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
       continue
     _, params, _ = checkpoint.restore(run_dir, template, opt_template, step)
     mesh_path = run_dir / "curve" / f"mesh_{step:06d}.ply"
-    export.export_run(params, cfg, result.norm, result.box, mesh_path, poses=poses)
+    export.export_run(params, cfg, result.norm, result.box, mesh_path, poses=poses,
+                      trained_with=True)
     mesh = load_mesh(mesh_path)
     eval_lib.to_truth_frame(mesh, scene_dir / "poses.json", scene_dir, meta)
     ev = metrics.evaluate(mesh, gt)

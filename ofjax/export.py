@@ -44,9 +44,11 @@ CHUNK = 1 << 14
 # linear interpolation set its level faces 0.18 um low, 6 steps put them at +0.01 um, as a 1,024
 # grid did (experiments/README.md); each step costs one SDF evaluation per vertex.
 REFINE_STEPS = 6
-# Below this share of the faces in some camera's sight, the poses are not the run's (another
-# frame, another scene): a trained surface lies in its cameras' view almost whole (>= 92% on the
-# synthetic scenes, where the rest are pockets inside solid parts).
+# Below this share of the faces in some camera's sight, poses given for a run are not the run's
+# (another frame, another scene): a trained surface lies in its cameras' view almost whole (>= 92%
+# on the synthetic scenes, where the rest are pockets inside solid parts). Not applied to the
+# poses a run was just trained with (train's own export): there a low share says the SDF made
+# surface no camera measured, which the drop removes.
 MIN_SEEN = 0.5
 POSES = "poses.json"  # the cameras a run was trained with, in its directory
 # The automatic grid's cell, in WLI pixels. The WLI samples the surface once per pixel, and a grid
@@ -304,13 +306,16 @@ class Exported(NamedTuple):
 
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | None = None,
                units: str = "um", refine_steps: int = REFINE_STEPS,
-               poses: dict | None = None, poses_path: str | Path = POSES) -> Exported:
+               poses: dict | None = None, poses_path: str | Path = POSES,
+               trained_with: bool = False) -> Exported:
   """Extracts and writes the mesh; refuses non-finite parameters (a diverged run).
 
   resolution: grid cells along the box's longest side; None: `grid_resolution` of
     cfg.train.mesh_resolution with `poses`.
   poses: the run's cameras (a poses file's contents, `poses_path` names it in messages): the
     faces none of them sees are dropped (`ofjax.visibility`); None keeps every face.
+  trained_with: `poses` are the ones `params` were just trained with, so a small share of faces
+    in sight is the SDF's unmeasured surface, not foreign poses (no MIN_SEEN refusal).
   """
   if resolution is None:
     resolution = grid_resolution(cfg.train.mesh_resolution, box, norm, poses)
@@ -323,7 +328,11 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | Non
   seen = 1.0
   if poses is not None:
     mesh, seen = visibility.drop_hidden(mesh, poses)
-    if seen < MIN_SEEN:
+    if trained_with and len(mesh.faces) == 0:
+      raise UserError(f"{path}: none of the trained surface is in sight of the cameras it was "
+                      f"trained with ({poses_path}); check the data, or export every face with "
+                      f"`python -m ofjax.export {path.parent} --keep-hidden`; no mesh written")
+    if not trained_with and seen < MIN_SEEN:
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")

@@ -535,7 +535,8 @@ def main(argv=None) -> int:
                  resume=args.resume)
   from ofjax import export
   exported = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
-                               units=scene.units, poses=scene_lib.poses_to_json(scene))
+                               units=scene.units, poses=scene_lib.poses_to_json(scene),
+                               trained_with=True)
   resumed = f" (resumed at step {result.start})" if result.start else ""
   print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
         f"{result.skipped} skipped; mesh: {exported.describe()}")

@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -208,3 +209,47 @@ def test_export_refuses_a_negative_or_tiny_resolution(tmp_path, capsys):
     assert export.main([str(tmp_path / "no_run"), "--resolution", bad]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--resolution {bad}: use at least 8 cells" in err[0], err
+
+
+def _look_down_poses(x_um: float, side_px: int = 64) -> dict:
+  """A poses file's contents: one orthographic scan of 1 um pixels, side_px wide, looking down
+  -z from 1 mm above the point (x_um, 0)."""
+  c2w = np.eye(4)
+  c2w[:3, :3] = np.diag([1.0, -1.0, -1.0])
+  c2w[:3, 3] = (x_um, 0.0, 1000.0)
+  return {"format": scene_lib.POSES_FORMAT, "version": scene_lib.VERSION, "units": "um",
+          "cameras": [{"name": "wli/0000", "modality": "wli", "width": side_px,
+                       "height": side_px, "intrinsics": {"model": "orthographic",
+                                                         "pixel_size": [1.0, 1.0]},
+                       "c2w": c2w.tolist()}]}
+
+
+def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp_path):
+  """A freshly initialised field (a sphere of radius 50 um) seen by one 64 um scan from above:
+  the cap under the scan, 16% of the faces, in sight. Poses given for a run (the CLI) with so little in sight are not the
+  run's: refused with one line naming the poses file. The poses the run was just trained with
+  (train's own export) keep the faces in sight and report the rest as dropped; a surface none of
+  their cameras sees is refused with a line naming the mesh."""
+  from ofjax import fields
+  from ofjax.config import Config, HashConfig
+
+  cfg = Config(hash=HashConfig(n_levels=4, log2_table_size=10, base_resolution=4))
+  params = fields.init_params(jax.random.PRNGKey(0), cfg)
+  norm = scene_lib.Normalization(center=(0.0, 0.0, 0.0), scale=100.0)
+  box = ((-0.7, -0.7, -0.7), (0.7, 0.7, 0.7))
+  poses = _look_down_poses(0.0)
+  path = tmp_path / "mesh.ply"
+  with pytest.raises(UserError, match=r"^given\.json: only [0-9]+% of the mesh's faces"):
+    export.export_run(params, cfg, norm, box, path, 32, poses=poses, poses_path="given.json")
+  assert not path.exists()
+  exported = export.export_run(params, cfg, norm, box, path, 32, poses=poses, trained_with=True)
+  kept = trimesh.load(path, process=False)
+  assert 1.0 - export.MIN_SEEN < exported.hidden < 1.0 and len(kept.faces) > 0
+  # Only the cap under the scan: within its footprint and above the equator (the footprint's
+  # corners reach down to it), each up to a face's reach.
+  assert (kept.vertices[:, 2] > -2 * exported.cell).all()
+  assert (np.abs(kept.vertices[:, :2]) <= 32.0 + 2 * exported.cell).all()
+  with pytest.raises(UserError, match=r"none of the trained surface is in sight"):
+    export.export_run(params, cfg, norm, box, tmp_path / "off.ply", 32,
+                      poses=_look_down_poses(500.0), trained_with=True)
+  assert not (tmp_path / "off.ply").exists()
