@@ -17,7 +17,6 @@ import sys
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 from skimage import measure
 
@@ -32,11 +31,9 @@ def compare(run_dir: Path, resolution: int) -> dict:
   poses = scene_lib.load_poses(export.run_poses(run_dir, None, run.poses_named,
                                                 "--resolution N"))
   res = export.grid_resolution(resolution, run.box, run.norm, poses)
-  lo, hi = np.asarray(run.box[0], np.float64), np.asarray(run.box[1], np.float64)
-  shape = export.grid_shape(lo, hi, res)
-  spacing = (hi - lo) / (np.asarray(shape) - 1)
-  sdf_jit = jax.jit(fields.sdf_value, static_argnums=2)
-  sdf = lambda x: sdf_jit(run.params, x, run.cfg)  # noqa: E731
+  lo = np.asarray(run.box[0], np.float64)
+  shape, spacing = export.grid_layout(lo, run.box[1], res)
+  sdf = export.field_function(fields.sdf_value, run.params, run.cfg)
   sdf(np.zeros((export.CHUNK, 3), np.float32)).block_until_ready()  # compile outside the timing
   t0 = time.perf_counter()
   band, evaluations = export.sdf_grid(sdf, lo, spacing, shape)

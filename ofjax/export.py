@@ -109,6 +109,13 @@ def grid_shape(lo, hi, resolution: int) -> tuple[int, int, int]:
   return tuple(max(int(np.ceil(resolution * e / ext.max())), 2) + 1 for e in ext)
 
 
+def grid_layout(lo, hi, resolution: int) -> tuple[tuple[int, int, int], np.ndarray]:
+  """The grid over [lo, hi]: nodes per axis (`grid_shape`) and [3] float64 node spacing."""
+  lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+  shape = grid_shape(lo, hi, resolution)
+  return shape, (hi - lo) / (np.asarray(shape) - 1)
+
+
 def node_values(fn: Callable, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int],
                 flat: np.ndarray, chunk: int = CHUNK) -> np.ndarray:
   """[N] float32 values of a point function at the grid nodes with these flat indices.
@@ -179,9 +186,8 @@ def marching_cubes(sdf_fn: Callable, lo, hi, resolution: int, refine_steps: int 
     (`drop_small_components`), before the refinement, which does not change the faces.
   Returns a mesh in the coordinates of sdf_fn (empty when the SDF has no sign change there).
   """
-  lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-  shape = grid_shape(lo, hi, resolution)
-  spacing = (hi - lo) / (np.asarray(shape) - 1)
+  lo = np.asarray(lo, np.float64)
+  shape, spacing = grid_layout(lo, hi, resolution)
   vol, _ = sdf_grid(sdf_fn, lo, spacing, shape)
   if not (vol.min() < 0 < vol.max()):
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False)
@@ -279,15 +285,19 @@ def surface_mesh(sdf_fn: Callable, color_fn: Callable, lo, hi, resolution: int,
   return mesh
 
 
+def field_function(fn: Callable, params, cfg: Config) -> Callable:
+  """x [N, 3] -> fn(params, x, cfg), jitted. params are an argument of the jitted function, not a
+  closed-over constant, so XLA neither embeds nor constant-folds the tables."""
+  jitted = jax.jit(fn, static_argnums=2)
+  return lambda x: jitted(params, x, cfg)
+
+
 def extract_mesh(params, cfg: Config, norm: scene_lib.Normalization, box, resolution: int,
                  min_component: float = 0.05, refine_steps: int = REFINE_STEPS
                  ) -> trimesh.Trimesh:
   """The trained SDF's surface in um with vertex colours from the global colour network."""
-  # params are an argument of the jitted functions, not a closed-over constant, so XLA neither
-  # embeds nor constant-folds the tables.
-  sdf_jit = jax.jit(fields.sdf_value, static_argnums=2)
-  color_jit = jax.jit(fields.global_color, static_argnums=2)
-  return surface_mesh(lambda x: sdf_jit(params, x, cfg), lambda x: color_jit(params, x, cfg),
+  return surface_mesh(field_function(fields.sdf_value, params, cfg),
+                      field_function(fields.global_color, params, cfg),
                       box[0], box[1], resolution, norm, min_component, refine_steps)
 
 
@@ -328,14 +338,14 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | Non
   seen = 1.0
   if poses is not None:
     mesh, seen = visibility.drop_hidden(mesh, poses)
-    if trained_with and len(mesh.faces) == 0:
-      raise UserError(f"{path}: none of the trained surface is in sight of the cameras it was "
-                      f"trained with ({poses_path}); check the data, or export every face with "
-                      f"`python -m ofjax.export {path.parent} --keep-hidden`; no mesh written")
     if not trained_with and seen < MIN_SEEN:
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")
+    if len(mesh.faces) == 0:  # with given poses, refused above (none in sight is below MIN_SEEN)
+      raise UserError(f"{path}: none of the trained surface is in sight of the cameras it was "
+                      f"trained with ({poses_path}); check the data, or export every face with "
+                      f"`python -m ofjax.export {path.parent} --keep-hidden`; no mesh written")
   return Exported(write_mesh(mesh, path, units), 1.0 - seen,
                   longest_side_um(box, norm) / resolution, units)
 

@@ -78,11 +78,10 @@ def test_dropped_components_are_not_refined():
   near_small = [np.abs(np.linalg.norm(q - [0.75, 0.0, 0.0], axis=1) - 0.08) < 0.05
                 for q in queried]
   # The calls that sampled the grid: as many as sdf_grid makes on it alone.
-  lo, hi = np.asarray(args[0], float), np.asarray(args[1], float)
-  shape = export.grid_shape(lo, hi, args[2])
+  shape, spacing = export.grid_layout(*args)
   grid_queries = []
-  export.sdf_grid(lambda x: grid_queries.append(1) or two_spheres(x), lo,
-                  (hi - lo) / (np.asarray(shape) - 1), shape)
+  export.sdf_grid(lambda x: grid_queries.append(1) or two_spheres(x), np.asarray(args[0], float),
+                  spacing, shape)
   grid_calls = len(grid_queries)
   assert np.concatenate(near_small[:grid_calls]).any()  # the grid samples it
   assert not np.concatenate(near_small[grid_calls:]).any()  # the bisection does not
@@ -180,8 +179,7 @@ def test_narrow_band_grid_gives_the_dense_grids_mesh():
   one cell's radius at a block's centre (the point farthest from its corners), on node counts
   no block size divides."""
   lo, hi = np.array([-1.0, -0.8, -0.7]), np.array([1.0, 0.8, 0.7])
-  shape = export.grid_shape(lo, hi, 101)
-  spacing = (hi - lo) / (np.asarray(shape) - 1)
+  shape, spacing = export.grid_layout(lo, hi, 101)
   centre = jnp.asarray(lo + (4 * np.array([2, 2, 14]) + 2) * spacing)  # block (2, 2, 14)'s
 
   def sdf(x):
@@ -211,25 +209,14 @@ def test_export_refuses_a_negative_or_tiny_resolution(tmp_path, capsys):
     assert len(err) == 1 and f"--resolution {bad}: use at least 8 cells" in err[0], err
 
 
-def _look_down_poses(x_um: float, side_px: int = 64) -> dict:
-  """A poses file's contents: one orthographic scan of 1 um pixels, side_px wide, looking down
-  -z from 1 mm above the point (x_um, 0)."""
-  c2w = np.eye(4)
-  c2w[:3, :3] = np.diag([1.0, -1.0, -1.0])
-  c2w[:3, 3] = (x_um, 0.0, 1000.0)
-  return {"format": scene_lib.POSES_FORMAT, "version": scene_lib.VERSION, "units": "um",
-          "cameras": [{"name": "wli/0000", "modality": "wli", "width": side_px,
-                       "height": side_px, "intrinsics": {"model": "orthographic",
-                                                         "pixel_size": [1.0, 1.0]},
-                       "c2w": c2w.tolist()}]}
-
-
 def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp_path):
   """A freshly initialised field (a sphere of radius 50 um) seen by one 64 um scan from above:
-  the cap under the scan, 16% of the faces, in sight. Poses given for a run (the CLI) with so little in sight are not the
-  run's: refused with one line naming the poses file. The poses the run was just trained with
+  the cap under the scan, 16% of the faces, in sight. Poses given for a run (the CLI) with so
+  little in sight are not the run's: refused with one line naming the poses file. The poses the run was just trained with
   (train's own export) keep the faces in sight and report the rest as dropped; a surface none of
   their cameras sees is refused with a line naming the mesh."""
+  from test_visibility import _look_down, _poses  # a 64 x 64 scan of 1 um pixels
+
   from ofjax import fields
   from ofjax.config import Config, HashConfig
 
@@ -237,7 +224,7 @@ def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp
   params = fields.init_params(jax.random.PRNGKey(0), cfg)
   norm = scene_lib.Normalization(center=(0.0, 0.0, 0.0), scale=100.0)
   box = ((-0.7, -0.7, -0.7), (0.7, 0.7, 0.7))
-  poses = _look_down_poses(0.0)
+  poses = _poses(("wli", _look_down(1000.0)))
   path = tmp_path / "mesh.ply"
   with pytest.raises(UserError, match=r"^given\.json: only [0-9]+% of the mesh's faces"):
     export.export_run(params, cfg, norm, box, path, 32, poses=poses, poses_path="given.json")
@@ -249,7 +236,9 @@ def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp
   # corners reach down to it), each up to a face's reach.
   assert (kept.vertices[:, 2] > -2 * exported.cell).all()
   assert (np.abs(kept.vertices[:, :2]) <= 32.0 + 2 * exported.cell).all()
+  aside = _look_down(1000.0)
+  aside[0, 3] = 500.0  # the scan's field, 64 um wide, ends ~420 um beside the sphere
   with pytest.raises(UserError, match=r"none of the trained surface is in sight"):
     export.export_run(params, cfg, norm, box, tmp_path / "off.ply", 32,
-                      poses=_look_down_poses(500.0), trained_with=True)
+                      poses=_poses(("wli", aside)), trained_with=True)
   assert not (tmp_path / "off.ply").exists()
