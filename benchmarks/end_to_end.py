@@ -86,7 +86,7 @@ def curve(run_dir: Path, scene_dir: Path, result, skip: set[int]) -> list[dict]:
     _, params, _ = checkpoint.restore(run_dir, template, opt_template, step)
     mesh_path = run_dir / "curve" / f"mesh_{step:06d}.ply"
     export.export_run(params, cfg, result.norm, result.box, mesh_path, poses=poses,
-                      trained_with=True)
+                      trained_in=run_dir)
     mesh = load_mesh(mesh_path)
     eval_lib.to_truth_frame(mesh, scene_dir / "poses.json", scene_dir, meta)
     ev = metrics.evaluate(mesh, gt)

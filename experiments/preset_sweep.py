@@ -59,7 +59,7 @@ def run_variant(job: sweep.Job) -> dict:
                        meta={"data": p["scene_dir"], "poses": p["poses"]})
   mesh = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
                            units=scene.units, poses=scene_lib.poses_to_json(scene),
-                           trained_with=True).path
+                           trained_in=run_dir).path
   out, _ = ablation.run_cli("eval", "--pred", str(mesh), "--gt", p["scene_dir"], "--poses",
                            p["poses"], "--json")
   ev = json.loads(out.strip().splitlines()[-1])

@@ -317,15 +317,16 @@ class Exported(NamedTuple):
 def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | None = None,
                units: str = "um", refine_steps: int = REFINE_STEPS,
                poses: dict | None = None, poses_path: str | Path = POSES,
-               trained_with: bool = False) -> Exported:
+               trained_in: Path | None = None) -> Exported:
   """Extracts and writes the mesh; refuses non-finite parameters (a diverged run).
 
   resolution: grid cells along the box's longest side; None: `grid_resolution` of
     cfg.train.mesh_resolution with `poses`.
   poses: the run's cameras (a poses file's contents, `poses_path` names it in messages): the
     faces none of them sees are dropped (`ofjax.visibility`); None keeps every face.
-  trained_with: `poses` are the ones `params` were just trained with, so a small share of faces
-    in sight is the SDF's unmeasured surface, not foreign poses (no MIN_SEEN refusal).
+  trained_in: the run directory where `params` were just trained with `poses`, so a small share
+    of faces in sight is the SDF's unmeasured surface, not foreign poses (no MIN_SEEN refusal);
+    a surface none of them sees is refused naming the export of that run that keeps every face.
   """
   if resolution is None:
     resolution = grid_resolution(cfg.train.mesh_resolution, box, norm, poses)
@@ -338,14 +339,14 @@ def export_run(params, cfg: Config, norm, box, path: Path, resolution: int | Non
   seen = 1.0
   if poses is not None:
     mesh, seen = visibility.drop_hidden(mesh, poses)
-    if not trained_with and seen < MIN_SEEN:
+    if trained_in is None and seen < MIN_SEEN:
       raise UserError(f"{poses_path}: only {seen:.0%} of the mesh's faces are in sight of its "
                       "cameras, so these are not the poses the run was trained with; pass those "
                       "(--poses), or --keep-hidden to keep every face; no mesh written")
-    if len(mesh.faces) == 0:  # with given poses, refused above (none in sight is below MIN_SEEN)
+    if len(mesh.faces) == 0:  # only with trained_in: given poses that see none are refused above
       raise UserError(f"{path}: none of the trained surface is in sight of the cameras it was "
                       f"trained with ({poses_path}); check the data, or export every face with "
-                      f"`python -m ofjax.export {path.parent} --keep-hidden`; no mesh written")
+                      f"`python -m ofjax.export {trained_in} --keep-hidden`; no mesh written")
   return Exported(write_mesh(mesh, path, units), 1.0 - seen,
                   longest_side_um(box, norm) / resolution, units)
 

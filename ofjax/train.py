@@ -536,7 +536,7 @@ def main(argv=None) -> int:
   from ofjax import export
   exported = export.export_run(result.params, cfg, result.norm, result.box, run_dir / "mesh.ply",
                                units=scene.units, poses=scene_lib.poses_to_json(scene),
-                               trained_with=True)
+                               trained_in=run_dir)
   resumed = f" (resumed at step {result.start})" if result.start else ""
   print(f"ofjax: trained {cfg.train.steps} steps{resumed} in {result.seconds:.1f} s, "
         f"{result.skipped} skipped; mesh: {exported.describe()}")

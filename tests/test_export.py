@@ -1,5 +1,6 @@
 """Mesh export: an analytic sphere SDF comes out as a sphere in um with the colour function's colours."""
 
+import re
 from pathlib import Path
 
 import jax
@@ -214,7 +215,8 @@ def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp
   the cap under the scan, 16% of the faces, in sight. Poses given for a run (the CLI) with so
   little in sight are not the run's: refused with one line naming the poses file. The poses the run was just trained with
   (train's own export) keep the faces in sight and report the rest as dropped; a surface none of
-  their cameras sees is refused with a line naming the mesh."""
+  their cameras sees is refused with a line naming the mesh and the run's export that keeps every
+  face."""
   from test_visibility import _look_down, _poses  # a 64 x 64 scan of 1 um pixels
 
   from ofjax import fields
@@ -229,7 +231,8 @@ def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp
   with pytest.raises(UserError, match=r"^given\.json: only [0-9]+% of the mesh's faces"):
     export.export_run(params, cfg, norm, box, path, 32, poses=poses, poses_path="given.json")
   assert not path.exists()
-  exported = export.export_run(params, cfg, norm, box, path, 32, poses=poses, trained_with=True)
+  run_dir = tmp_path / "run"
+  exported = export.export_run(params, cfg, norm, box, path, 32, poses=poses, trained_in=run_dir)
   kept = trimesh.load(path, process=False)
   assert 1.0 - export.MIN_SEEN < exported.hidden < 1.0 and len(kept.faces) > 0
   # Only the cap under the scan: within its footprint and above the equator (the footprint's
@@ -238,7 +241,8 @@ def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp
   assert (np.abs(kept.vertices[:, :2]) <= 32.0 + 2 * exported.cell).all()
   aside = _look_down(1000.0)
   aside[0, 3] = 500.0  # the scan's field, 64 um wide, ends ~420 um beside the sphere
-  with pytest.raises(UserError, match=r"none of the trained surface is in sight"):
+  with pytest.raises(UserError, match=r"^\S+off\.ply: none of the trained surface is in sight.*"
+                     rf"`python -m ofjax\.export {re.escape(str(run_dir))} --keep-hidden`"):
     export.export_run(params, cfg, norm, box, tmp_path / "off.ply", 32,
-                      poses=_poses(("wli", aside)), trained_with=True)
+                      poses=_poses(("wli", aside)), trained_in=run_dir)
   assert not (tmp_path / "off.ply").exists()
