@@ -408,9 +408,12 @@ def differences(rows: dict, scenes: list[str], steps) -> list[str]:
                 and val(s, "wli") < val(s, "fused")]
   if wli_better:
     out.append(f"- WLI only beats fused on {', '.join(wli_better)} (paper: fused 15.8x better on "
-               "average): with the same steps the fused model spends them on the OM colour as well, "
-               "and the region where the WLI is blind, which earns the fusion its margin in the "
-               "paper, is a small share of these surfaces (see the Poisson row).")
+               "average): with the same rays per step the fused model fits the heights from half "
+               "as many WLI rays (the other half are OM rays); at equal WLI rays per step it is at "
+               "or below WLI only on four of the five scenes and on average (1,200 steps, "
+               "experiments/README.md, 'Fused against WLI only at equal WLI rays per step'). And "
+               "the region where the WLI is blind, which earns the fusion its margin in the paper, "
+               "is a small share of these surfaces (see the Poisson row).")
   same_geo = [s for s in scenes if None not in (val(s, "fused_nores"), val(s, "fused"))
               and abs(val(s, "fused_nores") / val(s, "fused") - 1) <= WITHIN]
   psnr_up = [s for s in scenes if None not in (val(s, "fused_nores", "albedo_psnr"),
