@@ -213,10 +213,10 @@ def test_export_refuses_a_negative_or_tiny_resolution(tmp_path, capsys):
 def test_poses_of_the_training_keep_the_part_in_sight_and_others_are_refused(tmp_path):
   """A freshly initialised field (a sphere of radius 50 um) seen by one 64 um scan from above:
   the cap under the scan, 16% of the faces, in sight. Poses given for a run (the CLI) with so
-  little in sight are not the run's: refused with one line naming the poses file. The poses the run was just trained with
-  (train's own export) keep the faces in sight and report the rest as dropped; a surface none of
-  their cameras sees is refused with a line naming the mesh and the run's export that keeps every
-  face."""
+  little in sight are not the run's: refused with one line naming the poses file. The poses the
+  run was just trained with (train's own export) keep the faces in sight and report the rest as
+  dropped; a surface none of their cameras sees is refused with a line naming the mesh and the
+  run's export that keeps every face."""
   from test_visibility import _look_down, _poses  # a 64 x 64 scan of 1 um pixels
 
   from ofjax import fields
