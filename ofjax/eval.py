@@ -10,6 +10,10 @@ mesh) <mesh>_eval.json and two top-view heat maps: <mesh>_completeness.png (ever
 by its distance to the mesh) and <mesh>_accuracy.png (every evaluated mesh sample coloured by its
 distance to the true surface).
 
+When SCENE_DIR is a native bundle (scene.json, as `ofjax.synth` writes by default), its WLI scans,
+placed with the true poses (ground_truth/poses.json), tell which GT points no scan measured:
+completeness is then also given over those WLI-blind points and over the rest (ofjax.metrics).
+
 --poses POSES.json names the poses the mesh was reconstructed with. Poses that `ofjax.associate`
 estimated live in its own world frame (scan 0's, sample up, origin at scan 0's median point),
 which differs from the generator's frame by a rigid motion no data can fix (the gauge). With
@@ -54,11 +58,24 @@ def load_ground_truth(scene_dir: str | Path) -> tuple[metrics.GroundTruth, dict]
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
   except (json.JSONDecodeError, UnicodeDecodeError):
     raise UserError(f"{meta_path}: not valid JSON; regenerate the scene") from None
+  points = np.asarray(cloud.points, np.float64)
   gt = metrics.GroundTruth(
-      mesh, np.asarray(cloud.points, np.float64),
-      np.asarray(cloud.colors, np.float64) if cloud.has_colors() else None,
-      np.asarray(cloud.normals, np.float64) if cloud.has_normals() else None)
+      mesh, points, np.asarray(cloud.colors, np.float64) if cloud.has_colors() else None,
+      np.asarray(cloud.normals, np.float64) if cloud.has_normals() else None,
+      wli_coverage(Path(scene_dir), points))
   return gt, meta
+
+
+def wli_coverage(scene_dir: Path, points: np.ndarray) -> np.ndarray | None:
+  """[N] int: how many of the scene's WLI scans measured each GT point (within one WLI pixel,
+  true poses), or None when SCENE_DIR is not a native bundle with true poses."""
+  poses = scene_dir / "ground_truth" / "poses.json"
+  if not (scene_dir / "scene.json").is_file() or not poses.is_file():
+    return None
+  from ofjax.scene import load_scene, wli_points
+  scans = load_scene(scene_dir, poses=poses).wli
+  radius = max(max(s.pixel_size) for s in scans)
+  return metrics.measured_counts(points, [wli_points(s) for s in scans], radius)
 
 
 def to_truth_frame(mesh, poses_path: Path, scene_dir: Path, meta: dict) -> np.ndarray:
@@ -99,6 +116,12 @@ def table(s: dict) -> str:
     lines.append(f"F-score @{100 * f['threshold_rel']:g}% ({f['threshold_um']:.3g} um)"
                  f"  {f['fscore']:.4f}  (precision {f['precision']:.4f}, recall {f['recall']:.4f})")
   lines.append(f"normal consistency  {s['normal_consistency']:.4f}")
+  if s.get("wli_blind_share"):
+    lines.append(f"WLI-blind truth     {100 * s['wli_blind_share']:.1f}% of the GT points: "
+                 f"completeness {s['completeness_blind_um']:.4g} um there, "
+                 f"{s['completeness_measured_um']:.4g} um on the measured rest")
+  elif "wli_blind_share" in s:
+    lines.append("WLI-blind truth     none: some WLI scan measured every GT point")
   if "albedo_psnr" in s:
     lines.append(f"albedo              MAE {s['albedo_mae']:.4f}, RMSE {s['albedo_rmse']:.4f}, "
                  f"PSNR {s['albedo_psnr']:.2f} dB (after per-channel gain "

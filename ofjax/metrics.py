@@ -26,6 +26,13 @@ Definitions (all distances are to surfaces, through open3d's RaycastingScene, no
                  predicted vertex colours at the nearest predicted surface point; MAE, RMSE and
                  PSNR (dB, colours in [0, 1]). Shading baked into a colour scales it, so PSNR is
                  also reported after the least-squares gain per channel (`albedo_psnr_gain`).
+  WLI-blind region  the GT points no WLI scan measured: no measured point of any scan (its valid
+                 depths back-projected with the true pose) lies within one WLI pixel of them
+                 (`measured_counts`). This is where the paper's fusion earns its margin (the OM
+                 photos are the only data there), so completeness is also reported over the
+                 blind points and over the rest (`completeness_blind_um`,
+                 `completeness_measured_um`) with the blind points' share (`wli_blind_share`),
+                 when the ground truth carries the counts.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import dataclasses
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from ofjax.meshquery import MeshQuery, vertex_rgb
 
@@ -50,6 +58,8 @@ class GroundTruth:
   points: np.ndarray  # [N, 3] um, samples of its visible part
   albedo: np.ndarray | None = None  # [N, 3] RGB in [0, 1] at `points`
   normals: np.ndarray | None = None  # [N, 3] unit surface normals at `points`
+  # [N] int: how many WLI scans measured each point (`measured_counts`); None: not known
+  wli_scans: np.ndarray | None = None
 
   @property
   def diagonal(self) -> float:
@@ -109,6 +119,24 @@ def albedo_errors(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
           "albedo_gain": [float(g) for g in gain]}
 
 
+def measured_counts(points: np.ndarray, clouds: list[np.ndarray], radius: float) -> np.ndarray:
+  """[N] int: for each of `points` [N, 3], how many of `clouds` (each [M_k, 3], one scan's
+  measured points, um) hold a point within `radius` um of it."""
+  count = np.zeros(len(points), np.int64)
+  for cloud in clouds:
+    if len(cloud):
+      count += np.isfinite(cKDTree(cloud).query(points, distance_upper_bound=radius)[0])
+  return count
+
+
+def region_split(completeness: np.ndarray, wli_scans: np.ndarray) -> dict[str, float]:
+  """Completeness [N] um over the WLI-blind GT points (wli_scans [N] == 0) and over the rest."""
+  blind = wli_scans == 0
+  mean = lambda sel: float(completeness[sel].mean()) if sel.any() else float("nan")
+  return {"wli_blind_share": float(blind.mean()), "completeness_blind_um": mean(blind),
+          "completeness_measured_um": mean(~blind)}
+
+
 def fscores(accuracy: np.ndarray, completeness: np.ndarray, diagonal: float,
             thresholds: tuple[float, ...]) -> list[dict[str, float]]:
   """Precision, recall and F-score at each threshold (a fraction of `diagonal`).
@@ -152,6 +180,8 @@ def evaluate(pred: trimesh.Trimesh, gt: GroundTruth, thresholds: tuple[float, ..
       "n_pred_samples": int(n_samples), "n_pred_evaluated": int(keep.sum()),
       "n_gt_points": int(len(gt.points)),
   }
+  if gt.wli_scans is not None:
+    summary.update(region_split(comp, gt.wli_scans))
   rgb = vertex_rgb(pred)
   if gt.albedo is not None and rgb is not None:
     colours = pred_query.interpolate(rgb, to_pred["face"], to_pred["bary"])
