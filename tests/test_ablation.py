@@ -26,7 +26,7 @@ def _finished(job: sweep.Job, **result) -> dict:
   record = {"job": {"scene": job.scene, "variant": job.variant, "seed": job.seed,
                     "result": job.result, "params": job.params},
             "name": job.name, "seed": job.seed, "wall_s": 1.0, "machine": {"host": "h"},
-            "result": {"eval": {"chamfer_um": 9.0}, "stages_s": {"train": 5.0, "eval": 1.0},
+            "result": {"eval": {"chamfer_um": 9.0, "wli_blind_share": 0.1}, "stages_s": {"train": 5.0, "eval": 1.0},
                        "run_dir": job.params["run_dir"], "git": {"commit": "a" * 40}, **result}}
   Path(job.result).write_text(json.dumps(record))
   return {**record, "skipped": True}
@@ -36,12 +36,13 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   """An associated run evaluated before --poses is re-evaluated (its training kept, both commits
   recorded, its record file rewritten); a neural run whose mesh was extracted with another vertex
   refinement or with the hidden faces is exported again first, a Poisson run with the hidden faces
-  reconstructed again; true-pose runs and up-to-date ones are left alone."""
+  reconstructed again; a run evaluated before the WLI-blind split is evaluated again as it is;
+  true-pose runs and up-to-date ones are left alone."""
   calls, exported = [], []
 
   def fake_evaluated(job, stages, git):
     calls.append(job.name)
-    return {"eval": {"chamfer_um": 1.0}, "stages_s": {**stages, "eval": 2.0},
+    return {"eval": {"chamfer_um": 1.0, "wli_blind_share": 0.2}, "stages_s": {**stages, "eval": 2.0},
             "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job),
             "export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True,
             "export_grid": ablation.mesh_grid()}
@@ -61,6 +62,7 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
          "export_grid": ablation.mesh_grid()}
   coarse = _job(tmp_path, "associate", "fused_nores")  # meshed on the grid before export_grid
   now_but_grid = {k: v for k, v in now.items() if k != "export_grid"}
+  unsplit = _job(tmp_path, "true", "wli")  # up to date but for the blind split
   records = [_finished(old, **now), _finished(true, eval_args=[], **now),
              _finished(current, eval_args=ablation.eval_args(current), **now),
              _finished(stale, eval_args=[]),  # exported before the refinement: 0 steps
@@ -68,10 +70,12 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
              _finished(hidden, eval_args=[], export_refine_steps=ablation.export.REFINE_STEPS),
              _finished(poisson, eval_args=[]),
              _finished(poisson_now, eval_args=ablation.eval_args(poisson_now), hidden_dropped=True),
-             _finished(coarse, eval_args=ablation.eval_args(coarse), **now_but_grid)]
+             _finished(coarse, eval_args=ablation.eval_args(coarse), **now_but_grid),
+             _finished(unsplit, eval_args=[], **now)]
+  records[-1]["result"]["eval"] = {"chamfer_um": 9.0}
   out = ablation.reevaluate(records, [old, true, current, stale, hidden, poisson, poisson_now,
-                                      coarse], log=lambda m: None)
-  assert calls == [old.name, stale.name, hidden.name, poisson.name, coarse.name]
+                                      coarse, unsplit], log=lambda m: None)
+  assert calls == [old.name, stale.name, hidden.name, poisson.name, coarse.name, unsplit.name]
   p = poisson.params
   grid = ("--resolution", str(ablation.mesh_grid()["mesh_resolution"]))
   assert grid == ("--resolution", "0")  # the cpu preset's: cells of half a WLI pixel
@@ -82,15 +86,16 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
                       ("export", (coarse.params["run_dir"], *grid))]
   assert ablation.eval_args(old) == ["--poses", old.params["poses"]]
   assert ablation.eval_args(true) == []
-  assert out[0]["result"]["eval"] == {"chamfer_um": 1.0}
+  assert out[0]["result"]["eval"] == {"chamfer_um": 1.0, "wli_blind_share": 0.2}
   assert out[0]["result"]["stages_s"] == {"train": 5.0, "eval": 2.0}
   assert out[3]["result"]["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
-  assert [r["result"].get("mesh_remade", False)
-          for r in (out[0], out[3], out[5], out[6], out[8])] == [False, True, True, True, True]
+  assert [r["result"].get("mesh_remade", False) for r in (out[0], out[3], out[5], out[6], out[8],
+                                                           out[9])] == [False, True, True, True,
+                                                                        True, False]
   assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
   stored = json.loads(Path(old.result).read_text())
-  assert stored["result"]["eval"] == {"chamfer_um": 1.0} and "skipped" not in stored
-  assert json.loads(Path(true.result).read_text())["result"]["eval"] == {"chamfer_um": 9.0}
+  assert stored["result"]["eval"]["chamfer_um"] == 1.0 and "skipped" not in stored
+  assert json.loads(Path(true.result).read_text())["result"]["eval"]["chamfer_um"] == 9.0
 
 
 def test_pose_source_table_gives_the_ratio_per_method_and_scene():
@@ -138,6 +143,36 @@ def test_accuracy_and_completeness_tables_carry_the_chamfers_halves():
   line = next(x for x in ablation.metric_table(rows, ["seed", "wing"], "accuracy_um").splitlines()
               if x.startswith("| Fused |"))
   assert "| 1 ± 0.14 (n=2) | n/a |" in line
+
+
+def test_wli_blind_section_and_the_lenses_reading_on_it():
+  """The blind share comes from whichever method was evaluated with it; the completeness table
+  over the blind truth, the ratios there in the targets and the differences follow the rows."""
+  def rec(scene, variant, comp_blind, share):
+    ev = {"chamfer_um": 1.0, "chamfer_px": 1.0, "fscore": [{"fscore": 0.9}], "albedo_psnr": 20.0,
+          "accuracy_um": 1.0, "completeness_um": 1.0, "completeness_blind_um": comp_blind,
+          "wli_blind_share": share}
+    return {"job": {"scene": scene, "variant": variant, "seed": 0,
+                    "params": {"poses_source": "true"}}, "result": {"eval": ev}}
+  records = [rec("lenses", "conventional", 2.5, 0.356), rec("lenses", "wli", 1.6, 0.356),
+             rec("lenses", "fused", 1.25, 0.356), rec("lenses", "om", 9.0, 0.356),
+             rec("lenses", "fused_nores", 2.0, 0.356), rec("wing", "fused", 0.3, 0.003)]
+  rows = ablation.summarise(records)["true"]
+  assert ablation.blind_share(rows, "wing") == pytest.approx(0.003)
+  text = "\n".join(ablation.blind_lines(rows, ["lenses", "wing"]))
+  assert "lenses 35.6%, wing 0.3%" in text
+  assert "| Fused | 1.25 | 0.3 | 0.775 |" in text
+  assert "| WLI only | 1.6 | - | - |" in text  # not run on wing: no average
+  line = next(t for t in ablation.targets(rows, ["lenses"]) if "WLI-blind truth alone" in t)
+  assert "conventional/fused 2.00x (>= 5x: MISSED)" in line and "WLI-only/fused 1.28x" in line
+  sentence = ablation.blind_sentence(rows, ["lenses", "wing"])
+  assert "No WLI scan measured 36% of `lenses`'s truth (0.3-0.3% of the others')" in sentence
+  assert "Poisson / fused 2.00x, WLI only / fused 1.28x" in sentence
+  unsplit = ablation.summarise([{**r, "result": {"eval": {
+      k: v for k, v in r["result"]["eval"].items() if "blind" not in k}}} for r in records])["true"]
+  assert ablation.blind_lines(unsplit, ["lenses"])[0].startswith("Not measured")
+  assert ablation.blind_sentence(unsplit, ["lenses"]) == ""
+  assert not any("blind truth alone" in t for t in ablation.targets(unsplit, ["lenses"]))
 
 
 def test_figure_marks_a_kept_run_whose_directory_is_gone(tmp_path):
