@@ -193,7 +193,7 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
   export's vertex refinement or grid differs (records older than them count as 0 steps and
   OLD_GRID) or it kept the faces no camera sees (records without `hidden_dropped`), a Poisson one
   reconstructed again in the latter case; the training is kept, the record says which commit
-  remade and evaluated it."""
+  made the mesh again (`mesh_git`) and which evaluated it (`eval_git`)."""
   by_result = {j.result: j for j in jobs}
   for r in records:
     res = r.get("result")
@@ -207,7 +207,10 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
     if (res.get("eval_args", []) == eval_args(job) and not stale_mesh
         and "wli_blind_share" in res["eval"]):
       continue
-    stages = {k: v for k, v in res["stages_s"].items() if k not in ("eval", "export")}
+    # A mesh kept from an earlier remaking keeps its export time and the commit that made it.
+    stages = {k: v for k, v in res["stages_s"].items()
+              if k != "eval" and (k != "export" or not stale_mesh)}
+    made = (res.get("mesh_git") or (res.get("eval_git") if was_remade(res) else None))
     if stale_mesh and neural:
       grid = mesh_grid()
       log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps, "
@@ -221,7 +224,11 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
                                           "--poses", p["poses"])
     log(f"ablation: re-evaluating {r['name']} {' '.join(eval_args(job))}")
     new = _evaluated(job, stages, res.get("git"))
-    r["result"] = {**new, "eval_git": git_state(), **({"mesh_remade": True} if stale_mesh else {})}
+    now = git_state()
+    if stale_mesh:
+      made = now
+    r["result"] = {**new, "eval_git": now,
+                   **({"mesh_remade": True, "mesh_git": made} if made is not None else {})}
     fileio.write_json(job.result, {k: v for k, v in r.items() if k != "skipped"})
   return records
 
@@ -427,15 +434,15 @@ def blind_sentence(rows: dict, scenes: list[str]) -> str:
   if not all(x is not None and np.isfinite(x) for x in vals.values()):
     return ""
   others = [x for s, x in shares.items() if s != most]
-  return (f" No WLI scan measured {100 * shares[most]:.0f}% of `{most}`'s truth"
+  return (f" No WLI scan measured {100 * shares[most]:.0f}% of the truth of `{most}`"
           + (f" ({100 * min(others):.1f}-{100 * max(others):.1f}% of the others')" if others
              else "")
           + f"; there Poisson is {vals['conventional']:.2f} um from it, WLI only "
           f"{vals['wli']:.2f} um and fused {vals['fused']:.2f} um (Poisson / fused "
           f"{vals['conventional'] / vals['fused']:.2f}x, WLI only / fused "
-          f"{vals['wli'] / vals['fused']:.2f}x): the photos narrow the gap that the fusion earns "
-          "its margin from in the paper, but at this budget and photo size they do not close it "
-          "(experiments/README.md, 'Where the WLI is blind').")
+          f"{vals['wli'] / vals['fused']:.2f}x, where the paper's fusion earns its margin): at "
+          "this budget the photos add little where the WLI is blind (experiments/README.md, "
+          "'Where the WLI is blind').")
 
 
 def differences(rows: dict, scenes: list[str], steps) -> list[str]:
@@ -610,6 +617,11 @@ def figure(path: Path, scene: str, records: list[dict]):
   return fig
 
 
+def was_remade(res: dict) -> bool:
+  """Whether a result's mesh was made again after its run (`reevaluate`)."""
+  return "export" in res.get("stages_s", {}) or bool(res.get("mesh_remade"))
+
+
 def commits_line(records: list[dict]) -> str:
   """Which commits the runs ran at: the sweep keeps a finished run while its job (scene, variant,
   seed, config fingerprint) is unchanged, so a table can hold runs of several commits."""
@@ -621,20 +633,29 @@ def commits_line(records: list[dict]) -> str:
       variants[r["job"]["variant"]] = variants.get(r["job"]["variant"], 0) + 1
   parts = [f"`{c}` {sum(v.values())} (" + ", ".join(f"{LABELS.get(k, k)} {n}" for k, n in v.items())
            + ")" for c, v in by_commit.items()]
-  again: dict[str, int] = {}  # meshes made again (`reevaluate`), by commit
+  again: dict[str, int] = {}  # meshes made again (`reevaluate`), by the commit that made them
+  evaluated: dict[str, int] = {}  # runs evaluated again (`reevaluate`), by commit
   for r in records:
     res = r.get("result", {})
-    if ("export" in res.get("stages_s", {}) or res.get("mesh_remade")) and "eval_git" in res:
-      c = res["eval_git"]["commit"][:7]
-      again[c] = again.get(c, 0) + 1
+    if "eval_git" not in res:
+      continue
+    c = res["eval_git"]["commit"][:7]
+    evaluated[c] = evaluated.get(c, 0) + 1
+    if was_remade(res):
+      m = res.get("mesh_git", res["eval_git"])["commit"][:7]
+      again[m] = again.get(m, 0) + 1
   return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
           "unchanged): " + "; ".join(parts) + "."
-          + "".join(f" {n} of their meshes made again (neural ones exported from the runs' last "
-                    f"checkpoints, Poisson ones reconstructed) and evaluated at `{c}`."
+          + "".join(f" {n} of their meshes made again at `{c}` (neural ones exported from the "
+                    "runs' last checkpoints, Poisson ones reconstructed)."
                     for c, n in again.items())
+          + "".join(f" {n} runs evaluated again at `{c}`." for c, n in evaluated.items())
           + (" A mesh is made again when the mesh making changed after its run: the vertex "
              "refinement (a0effaf), the faces no camera sees dropped (216466f), the grid of half "
-             "a WLI pixel (42e29fa)." if again else ""))
+             "a WLI pixel (42e29fa)." if again else "")
+          + (" A run is evaluated again when its mesh is made again, when it was evaluated "
+             "without moving associated poses into the truth's frame, and when it was evaluated "
+             "before the completeness at the WLI-blind truth (875abd2)." if evaluated else ""))
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:

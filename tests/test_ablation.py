@@ -92,6 +92,7 @@ def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, mo
   assert [r["result"].get("mesh_remade", False) for r in (out[0], out[3], out[5], out[6], out[8],
                                                            out[9])] == [False, True, True, True,
                                                                         True, False]
+  assert out[3]["result"]["mesh_git"] == out[3]["result"]["eval_git"]
   assert out[0]["result"]["git"]["commit"] == "a" * 40 and "commit" in out[0]["result"]["eval_git"]
   stored = json.loads(Path(old.result).read_text())
   assert stored["result"]["eval"]["chamfer_um"] == 1.0 and "skipped" not in stored
@@ -166,7 +167,7 @@ def test_wli_blind_section_and_the_lenses_reading_on_it():
   line = next(t for t in ablation.targets(rows, ["lenses"]) if "WLI-blind truth alone" in t)
   assert "conventional/fused 2.00x (>= 5x: MISSED)" in line and "WLI-only/fused 1.28x" in line
   sentence = ablation.blind_sentence(rows, ["lenses", "wing"])
-  assert "No WLI scan measured 36% of `lenses`'s truth (0.3-0.3% of the others')" in sentence
+  assert "No WLI scan measured 36% of the truth of `lenses` (0.3-0.3% of the others')" in sentence
   assert "Poisson / fused 2.00x, WLI only / fused 1.28x" in sentence
   unsplit = ablation.summarise([{**r, "result": {"eval": {
       k: v for k, v in r["result"]["eval"].items() if "blind" not in k}}} for r in records])["true"]
@@ -191,6 +192,30 @@ def test_figure_marks_a_kept_run_whose_directory_is_gone(tmp_path):
   assert plt.imread(out).shape[1] > plt.imread(out).shape[0]  # two methods side by side
 
 
+def test_reevaluation_keeps_the_provenance_of_a_mesh_made_again_before(tmp_path, monkeypatch):
+  """A run whose mesh an earlier commit exported again, evaluated again now for the blind split:
+  its export time and the commit that made the mesh stay; the new evaluation's commit is added."""
+  monkeypatch.setattr(ablation, "_evaluated", lambda job, stages, git: {
+      "eval": {"chamfer_um": 1.0, "wli_blind_share": 0.2}, "stages_s": {**stages, "eval": 2.0},
+      "run_dir": job.params["run_dir"], "git": git, "eval_args": ablation.eval_args(job),
+      "export_refine_steps": ablation.export.REFINE_STEPS, "hidden_dropped": True,
+      "export_grid": ablation.mesh_grid()})
+  monkeypatch.setattr(ablation, "run_cli", lambda *a: pytest.fail(f"mesh made again: {a}"))
+  job = _job(tmp_path, "true")
+  rec = _finished(job, eval_args=[], export_refine_steps=ablation.export.REFINE_STEPS,
+                  hidden_dropped=True, export_grid=ablation.mesh_grid(),
+                  eval_git={"commit": "b" * 40})
+  rec["result"]["stages_s"] = {"train": 5.0, "export": 3.0, "eval": 1.0}
+  rec["result"]["eval"] = {"chamfer_um": 9.0}  # evaluated before the blind split
+  (res,) = [r["result"] for r in ablation.reevaluate([rec], [job], log=lambda m: None)]
+  assert res["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
+  assert res["mesh_remade"] and res["mesh_git"] == {"commit": "b" * 40}
+  assert res["eval_git"]["commit"] != "b" * 40
+  line = ablation.commits_line([{**rec, "result": res}])
+  assert "1 of their meshes made again at `bbbbbbb`" in line
+  assert f"1 runs evaluated again at `{res['eval_git']['commit'][:7]}`" in line
+
+
 def test_commits_line_counts_runs_and_the_meshes_exported_again(tmp_path):
   fused, wli = _job(tmp_path, "true"), _job(tmp_path, "true", "wli")
   records = [_finished(fused), _finished(wli)]
@@ -198,10 +223,14 @@ def test_commits_line_counts_runs_and_the_meshes_exported_again(tmp_path):
   records[1]["result"]["eval_git"] = {"commit": "b" * 40}
   line = ablation.commits_line(records)
   assert "`aaaaaaa` 2 (Fused 1, WLI only 1)" in line
-  assert "1 of their meshes made again" in line and "`bbbbbbb`" in line
+  assert "1 of their meshes made again at `bbbbbbb`" in line
+  assert "1 runs evaluated again at `bbbbbbb`" in line
   assert "made again" not in ablation.commits_line(records[:1])
   records[0]["result"].update(mesh_remade=True, eval_git={"commit": "b" * 40})  # a Poisson remade
-  assert "2 of their meshes made again" in ablation.commits_line(records)
+  assert "2 of their meshes made again at `bbbbbbb`" in ablation.commits_line(records)
+  records[0]["result"].update(mesh_git={"commit": "c" * 40})  # remade at c, evaluated at b
+  line = ablation.commits_line(records)
+  assert "1 of their meshes made again at `ccccccc`" in line and "2 runs evaluated again" in line
 
 
 def test_section_of_a_sphere_is_the_circle_of_its_plane():
