@@ -658,6 +658,15 @@ def commits_line(records: list[dict]) -> str:
              "before the completeness at the WLI-blind truth (875abd2)." if evaluated else ""))
 
 
+def provenance(res: dict) -> str:
+  """' (mesh made again at C, evaluated again at D)' for a run `reevaluate` touched, else ''."""
+  if "eval_git" not in res:
+    return ""
+  made = (f"mesh made again at {res.get('mesh_git', res['eval_git'])['commit'][:10]}, "
+          if was_remade(res) else "")
+  return f" ({made}evaluated again at {res['eval_git']['commit'][:10]})"
+
+
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:
   scenes_all = settings["scenes"]
   lines = ["# Ablation (OpticFusion Table 1) on ofjax's synthetic scenes", "",
@@ -726,9 +735,7 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
     lines.append(f"| {j['params'].get('poses_source', '-')} | {j['scene']} | {j['variant']} | "
                  f"{j['seed']} | {r['wall_s']:.0f} | {st} | {r['machine']['host']} | "
                  f"{(r['result'].get('git') or {}).get('commit', '-')[:10]}"
-                 + (f" ({'re-exported and ' if 'export' in r['result']['stages_s'] else ''}"
-                    f"re-evaluated at {r['result']['eval_git']['commit'][:10]})"
-                    if "eval_git" in r["result"] else "") + " |")
+                 + provenance(r["result"]) + " |")
   return "\n".join(lines) + "\n"
 
 

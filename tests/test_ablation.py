@@ -211,6 +211,9 @@ def test_reevaluation_keeps_the_provenance_of_a_mesh_made_again_before(tmp_path,
   assert res["stages_s"] == {"train": 5.0, "export": 3.0, "eval": 2.0}
   assert res["mesh_remade"] and res["mesh_git"] == {"commit": "b" * 40}
   assert res["eval_git"]["commit"] != "b" * 40
+  assert ablation.provenance(res) == (f" (mesh made again at bbbbbbbbbb, evaluated again at "
+                                      f"{res['eval_git']['commit'][:10]})")
+  assert ablation.provenance({"stages_s": {}}) == ""
   line = ablation.commits_line([{**rec, "result": res}])
   assert "1 of their meshes made again at `bbbbbbb`" in line
   assert f"1 runs evaluated again at `{res['eval_git']['commit'][:7]}`" in line
