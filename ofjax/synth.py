@@ -388,12 +388,26 @@ class GroundTruth:
   synth_mesh: SynthMesh  # materials and per-face data, for tests and further renders
 
 
+def om_size_checked(om_size) -> tuple[int, int]:
+  """(width, height) of the OM photos, both positive and even (the principal point is the
+  centre), or a UserError naming --om-size."""
+  w, h = om_size
+  if min(w, h) < 2 or w % 2 or h % 2:
+    raise UserError(f"--om-size {w},{h}: width and height must be even and at least 2 pixels")
+  return int(w), int(h)
+
+
 def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
-             source: dict[str, Any] | None = None) -> tuple[scn.Scene, GroundTruth]:
+             source: dict[str, Any] | None = None,
+             om_size: tuple[int, int] | None = None) -> tuple[scn.Scene, GroundTruth]:
   """Images `sample` with the WLI and the OM; see `make_scene`."""
   if resolution not in RESOLUTIONS:
     raise UserError(f"--resolution {resolution!r}: unknown; choose one of {sorted(RESOLUTIONS)}")
   res = RESOLUTIONS[resolution]
+  if om_size is not None:
+    # Same field of view and distance: only the photos' sampling of the sample changes.
+    res = dataclasses.replace(res, om=om_size_checked(om_size))
+    source = {**(source or {}), "om_size": list(res.om)}
   clock, timing = time.perf_counter(), {}
 
   def lap(name):
@@ -441,7 +455,7 @@ def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
       "size_um": float(np.max(hi - lo)), "substrate_half_size_um": float(substrate_half),
       "wli_pixel_size_um": px, "na": NA,
       "um_per_unit": px * res.wli / LAYOUT_WIDTH,
-      "om_focal_px": float(om[0].K[0, 0]),
+      "om_focal_px": float(om[0].K[0, 0]), "om_size_px": list(res.om),
       "materials": [{"name": m.name, "beta": m.beta} for m in mesh.materials],
       "void_fraction": {s.name: float(np.mean(~s.valid)) for s in wli},
       "triangles": int(len(mesh.faces)), "surface_points": int(len(pts)),
@@ -454,21 +468,23 @@ def simulate(sample: Sample, seed: int = 0, resolution: str = "quick",
 
 
 def make_scene(name: str = "seed", seed: int = 0, resolution: str = "quick",
-               ) -> tuple[scn.Scene, GroundTruth]:
+               om_size: tuple[int, int] | None = None) -> tuple[scn.Scene, GroundTruth]:
   """A procedural scene (see `SCENES`) imaged as in the paper.
 
   The returned Scene mirrors what `write` puts on disk: WLI depths with pixel sizes and
   acquisition priors, OM photos with intrinsics K, and no poses (c2w None): the true poses are
-  `gt.poses`; `ofjax.scene.apply_poses(scene, gt.poses)` sets them.
+  `gt.poses`; `ofjax.scene.apply_poses(scene, gt.poses)` sets them. `om_size` (width, height)
+  replaces the resolution's photo size; the WLI scans and the truth do not change with it.
   """
   if name not in SCENES:
     raise UserError(f"--scene {name!r}: unknown; choose one of {', '.join(SCENES)} "
                     "(`python -m ofjax.synth --list`)")
-  return simulate(SCENES[name](seed), seed, resolution, {"scene": name})
+  return simulate(SCENES[name](seed), seed, resolution, {"scene": name}, om_size)
 
 
 def make_scene_from_mesh(path: str | Path, seed: int = 0, resolution: str = "quick",
-                         beta: float = 0.2) -> tuple[scn.Scene, GroundTruth]:
+                         beta: float = 0.2, om_size: tuple[int, int] | None = None
+                         ) -> tuple[scn.Scene, GroundTruth]:
   """A user's mesh (um; vertex colours = albedo, grey without) on a diffuse textured substrate.
 
   The mesh is moved so that its footprint is centred at the origin and its lowest point touches
@@ -503,7 +519,7 @@ def make_scene_from_mesh(path: str | Path, seed: int = 0, resolution: str = "qui
                                               speckle=0.4))]
   sample = Sample(path.stem, mats, substrate=1, half_size=half, height=float(v[:, 2].max()),
                   spacing=half / 24, solids=[Solid(v, np.asarray(tm.faces), 0, colors)])
-  return simulate(sample, seed, resolution, {"mesh": str(path)})
+  return simulate(sample, seed, resolution, {"mesh": str(path)}, om_size)
 
 
 # ----------------------------------------------------------------------------------- writers
@@ -661,6 +677,14 @@ def write(scene: scn.Scene, gt: GroundTruth, out: str | Path, layout: str = "nat
 # ------------------------------------------------------------------------------------------ CLI
 
 
+def parse_om_size(text: str) -> tuple[int, int]:
+  try:
+    w, h = (int(v) for v in text.split(","))
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"{text!r}: expected W,H in pixels, e.g. 640,480") from None
+  return w, h
+
+
 def parse_args(argv):
   p = argparse.ArgumentParser(
       prog="python -m ofjax.synth", description="Render a synthetic WLI + OM scene (um) with "
@@ -674,6 +698,9 @@ def parse_args(argv):
   p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
   p.add_argument("--resolution", default="quick", choices=sorted(RESOLUTIONS),
                  help="tiny (tests), quick (CPU work, default) or full (the paper's sizes)")
+  p.add_argument("--om-size", metavar="W,H", type=parse_om_size,
+                 help="OM photo size in pixels (both even), in place of the resolution's; the "
+                 "field of view stays, so the photos sample the sample more or less finely")
   p.add_argument("--layout", default="native", choices=LAYOUTS,
                  help="native ofjax bundle (default) or the public OpticFusion layout")
   p.add_argument("--list", action="store_true", help="list the procedural scenes and exit")
@@ -690,16 +717,18 @@ def main(argv=None) -> int:
   if args.out is None:
     raise UserError("--out: missing; pass the directory to write the scene to")
   if args.mesh is not None:
-    scene, gt = make_scene_from_mesh(args.mesh, args.seed, args.resolution, args.beta)
+    scene, gt = make_scene_from_mesh(args.mesh, args.seed, args.resolution, args.beta,
+                                     args.om_size)
   else:
-    scene, gt = make_scene(args.scene, args.seed, args.resolution)
+    scene, gt = make_scene(args.scene, args.seed, args.resolution, args.om_size)
   t0 = time.perf_counter()
   write(scene, gt, args.out, args.layout)
   gt.timing["write"] = round(time.perf_counter() - t0, 3)
   fileio.write_json(args.out / "ground_truth" / "timing.json", {"seconds": gt.timing})
   voids = np.mean(list(gt.meta["void_fraction"].values()))
-  print(f"ofjax.synth: wrote {gt.meta['scene']!r} ({args.layout} layout, {args.resolution}) to "
-        f"{args.out}: {len(scene.wli)} WLI scans (mean void fraction {voids:.1%}), "
+  size = f", photos {args.om_size[0]}x{args.om_size[1]}" if args.om_size else ""
+  print(f"ofjax.synth: wrote {gt.meta['scene']!r} ({args.layout} layout, {args.resolution}{size})"
+        f" to {args.out}: {len(scene.wli)} WLI scans (mean void fraction {voids:.1%}), "
         f"{len(scene.om)} OM photos, {len(gt.points)} ground-truth points; "
         f"{sum(gt.timing.values()):.1f} s")
   return 0
