@@ -343,14 +343,17 @@ def _value(rows: dict, scene: str, variant: str, key: str = "chamfer_um") -> flo
   return None if c is None else c[key][0]
 
 
+def _finite_value(rows: dict, scene: str, variant: str, key: str = "chamfer_um") -> float | None:
+  """`_value`, with a non-finite mean (a run without a surface, nothing measured) as None."""
+  x = _value(rows, scene, variant, key)
+  return x if x is not None and np.isfinite(x) else None
+
+
 def blind_share(rows: dict, scene: str) -> float | None:
   """The share of a scene's truth no WLI scan measured (the same for every method: it is the
   scene's), from the first method evaluated with it; None when none was."""
-  for v in VARIANTS:
-    x = _value(rows, scene, v, "wli_blind_share")
-    if x is not None and np.isfinite(x):
-      return x
-  return None
+  return next((x for v in VARIANTS
+               if (x := _finite_value(rows, scene, v, "wli_blind_share")) is not None), None)
 
 
 def blind_lines(rows: dict, scenes: list[str]) -> list[str]:
@@ -404,9 +407,9 @@ def targets(rows: dict, scenes: list[str]) -> list[str]:
         "lenses", "fused")
     out.append(f"- lenses: conventional/fused {rc:.2f}x (target >= 5x: {'MET' if rc >= 5 else 'MISSED'}),"
                f" WLI-only/fused {rw:.2f}x (target >= 3x: {'MET' if rw >= 3 else 'MISSED'})")
-    blind = {v: _value(rows, "lenses", v, "completeness_blind_um") for v in ("conventional",
-                                                                               "wli", "fused")}
-    if all(x is not None and np.isfinite(x) for x in blind.values()):
+    blind = {v: _finite_value(rows, "lenses", v, "completeness_blind_um")
+             for v in ("conventional", "wli", "fused")}
+    if None not in blind.values():
       bc, bw = blind["conventional"] / blind["fused"], blind["wli"] / blind["fused"]
       out.append(f"- lenses, read on its WLI-blind truth alone (completeness there): "
                  f"conventional/fused {bc:.2f}x (>= 5x: {'MET' if bc >= 5 else 'MISSED'}), "
@@ -429,9 +432,9 @@ def blind_sentence(rows: dict, scenes: list[str]) -> str:
   if None in shares.values():
     return ""
   most = max(shares, key=shares.get)
-  vals = {v: _value(rows, most, v, "completeness_blind_um") for v in ("conventional", "wli",
-                                                                      "fused")}
-  if not all(x is not None and np.isfinite(x) for x in vals.values()):
+  vals = {v: _finite_value(rows, most, v, "completeness_blind_um")
+          for v in ("conventional", "wli", "fused")}
+  if None in vals.values():
     return ""
   others = [x for s, x in shares.items() if s != most]
   return (f" No WLI scan measured {100 * shares[most]:.0f}% of the truth of `{most}`"
@@ -447,9 +450,8 @@ def blind_sentence(rows: dict, scenes: list[str]) -> str:
 
 def differences(rows: dict, scenes: list[str], steps) -> list[str]:
   """Where our ratios differ from the paper's, stated from the rows (bullets with the numbers)."""
-  def val(s, v, key="chamfer_um"):  # finite values only: "no surface" counts as missing here
-    x = _value(rows, s, v, key)
-    return x if x is not None and np.isfinite(x) else None
+  def val(s, v, key="chamfer_um"):  # "no surface" counts as missing here
+    return _finite_value(rows, s, v, key)
 
   out, budget = [], f"{steps} training steps" if steps else "the cpu preset's training steps"
   poisson = [val(s, "conventional", "chamfer_px") for s in scenes]
