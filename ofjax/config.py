@@ -83,15 +83,6 @@ class RenderConfig:
 class LossConfig:
   """Loss weights (paper Sec. 3.4 and the reference code); each loss is summed as lambda * loss."""
   lambda_color: float = 1.0  # OM colour MSE
-  # Added to lambda_color on the OM rays whose rendered surface no WLI scan measured
-  # (ofjax.coverage): the photos weigh more only where they are the only data, as on `lenses`'
-  # polished flanks, and keep lambda_color where they would pull the surface off the measured
-  # heights. Not in the paper: 0 here and in the presets (experiments/README.md).
-  lambda_color_blind: float = 0.0
-  # An OM ray's surface point counts as measured within this many WLI pixels (the scan's sx) of a
-  # scan's depth along its axis: the depth spread over a pixel on a 60-degree flank (~1.3 px)
-  # plus the fit's error (ofjax.coverage).
-  blind_tolerance_px: float = 2.0
   lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
   lambda_wli: float = 1.0  # WLI depth MSE in reference units (TrainConfig.reference_unit; voids masked)
   # SDF^2 (reference units) at the measured WLI points, o + D d: the depth loss constrains only the
@@ -158,10 +149,6 @@ class TrainConfig:
 # TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
 # change them, and Config.fingerprint leaves them out.
 KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
-# Fields added after runs were recorded (experiments/results), left out of the fingerprint while
-# at their default, with which a run trains exactly as before they existed: the recorded runs'
-# fingerprints stay valid and `make reproduce` does not retrain them.
-ADDED_FIELDS = {"loss": ("lambda_color_blind", "blind_tolerance_px")}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -195,15 +182,10 @@ class Config:
     return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
   def fingerprint(self) -> str:
-    """8 hex digits of the resolved values but KEEPING_FIELDS (and ADDED_FIELDS at their
-    defaults): runs with equal fingerprints trained alike (how they were kept or meshed may
-    differ)."""
+    """8 hex digits of the resolved values but KEEPING_FIELDS: runs with equal fingerprints
+    trained alike (how they were kept or meshed may differ)."""
     d = self.to_dict()
     d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
-    for part, names in ADDED_FIELDS.items():
-      default = getattr(Config(), part)
-      d[part] = {k: v for k, v in d[part].items()
-                 if not (k in names and v == getattr(default, k))}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 

@@ -23,14 +23,6 @@ def color(pred, target, mask):
   return masked_mean(jnp.sum((pred - target) ** 2, -1), mask)
 
 
-def color_blind(pred, target, mask, blind):
-  """1/m sum over the OM rays (mask: [R]) of ||C_hat - C||^2 where blind: [R] (their surface no
-  WLI scan measured), 0 elsewhere: m counts all OM rays, so lambda_color_blind adds to
-  lambda_color ray for ray (not in the paper; LossConfig.lambda_color_blind). pred, target: [R, 3].
-  """
-  return masked_mean(jnp.sum((pred - target) ** 2, -1) * blind, mask)
-
-
 def residual(color_res, mask):
   """L_res = 1/m sum ||C_res||^2 over OM rays (paper Eq. 4). color_res: [R, 3]."""
   return masked_mean(jnp.sum(color_res**2, -1), mask)

@@ -32,8 +32,8 @@ import numpy as np
 import optax
 
 from ofjax import __version__ as ofjax_version
-from ofjax import (averaging, cameras, checkpoint, coverage, fields, fileio, guard, losses, machine,
-                   parallel, prefit, render)
+from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, machine, parallel,
+                   prefit, render)
 from ofjax import scene as scene_lib
 from ofjax.config import KEEPING_FIELDS, PRESETS, Config, resolve_spec, with_steps
 from ofjax.errors import UserError, cli
@@ -205,16 +205,14 @@ def reference_scale(data: TrainData, cfg: Config):
   return 1.0 / (fov * cfg.train.reference_unit)
 
 
-def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns, unit=1.0,
-                   is_measured=None):
+def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field_fns, unit=1.0):
   """Renders the batch and returns (total, {"loss/<name>": value, ...}).
 
   field_fns: (params, cfg) -> (geometry_fn, color_fn, sdf_fn) as fields.field_fns (benchmarks swap
   in a nested-autodiff reference). unit: [] reference units per normalised unit
   (reference_scale): the depth residual, the SDF in the sparsity term and NeuS's s are measured
   in it, as in the reference code. The batch's WLI rays (its first ray_split(cfg)[0]) are not
-  coloured: only OM rays enter the colour losses. is_measured: [N, 3] points -> [N] bool, whether
-  a WLI scan measured them (`wli_measured`); needed when loss.lambda_color_blind > 0.
+  coloured: only OM rays enter the colour losses.
   """
   n_wli = ray_split(cfg)[0]
   # sigmoid(s_ref * sdf_ref) with sdf_ref = unit * sdf: s per normalised unit is unit * s_ref.
@@ -239,27 +237,11 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
     # The SDF alone, differentiable in params: its spatial gradient is not needed here.
     terms["wli_surface"] = losses.wli_surface(unit * fields.sdf_value(params, points, cfg),
                                               measured)
-  logs = {}
-  if lc.lambda_color_blind:  # static, as above
-    # Which OM rays' surfaces the WLI missed, at the model's current surface (no gradient: the
-    # weight must not move the surface to change itself).
-    x = jax.lax.stop_gradient(batch["o"] + batch["d"] * out["depth"][:, None])
-    blind = batch["om_ok"] & ~is_measured(x)
-    terms["color_blind"] = losses.color_blind(out["color"], batch["rgb"], batch["om_ok"], blind)
-    logs["om/blind_share"] = losses.masked_mean(blind, batch["om_ok"])
   total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
-  logs.update({f"loss/{k}": v for k, v in terms.items()})
+  logs = {f"loss/{k}": v for k, v in terms.items()}
   logs["loss/total"] = total
   logs["inv_s"] = fields.inv_s(params)
   return total, logs
-
-
-def wli_measured(data: TrainData, cfg: Config):
-  """points [N, 3] -> [N] bool: some WLI scan of `data` measured them (ofjax.coverage)."""
-  def measured(x):
-    return coverage.wli_measured(x, data.wli_depth, data.wli_valid, data.wli_c2w, data.wli_pixel,
-                                 data.wli_hw, cfg.loss.blind_tolerance_px)
-  return measured
 
 
 def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
@@ -281,8 +263,7 @@ def create_train_step(cfg: Config, optimizer: optax.GradientTransformation,
     batch = parallel.shard_rays(sample_batch(data, k_batch, cfg), mesh)
     chex.assert_shape(batch["o"], (cfg.train.n_rays, 3))
     (_, logs), grads = jax.value_and_grad(compute_losses, has_aux=True)(
-        params, batch, k_render, step, cfg, field_fns, reference_scale(data, cfg),
-        wli_measured(data, cfg))
+        params, batch, k_render, step, cfg, field_fns, reference_scale(data, cfg))
     updates, opt_state = optimizer.update(grads, opt_state, params)
     params = optax.apply_updates(params, updates)
     return params, opt_state, logs

@@ -174,31 +174,6 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap, extra):
                              + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
 
 
-def test_color_blind_term_adds_weight_to_the_rays_no_scan_measured(cap):
-  """loss/color_blind is the colour MSE over the OM rays with the blind ones only (m = all OM
-  rays): with a negative tolerance no point counts as measured and it equals loss/color; at the
-  default some OM rays see measured surface and it is smaller; the total gains lambda times it."""
-  scene, _, norm = cap
-  data = train.prepare_data(scene, norm)
-  params = fields.init_params(jax.random.PRNGKey(0), resolve("cpu", **SMALL))
-  def losses_with(**loss):
-    cfg = resolve("cpu", loss=loss, **SMALL)
-    batch = train.sample_batch(data, jax.random.PRNGKey(1), cfg)
-    return train.compute_losses(params, batch, jax.random.PRNGKey(2), 300, cfg,
-                                is_measured=train.wli_measured(data, cfg))
-  _, base = losses_with()
-  assert "loss/color_blind" not in base and "om/blind_share" not in base
-  _, none_measured = losses_with(lambda_color_blind=0.9, blind_tolerance_px=-1.0)
-  np.testing.assert_allclose(float(none_measured["loss/color_blind"]),
-                             float(none_measured["loss/color"]), rtol=1e-6)
-  assert float(none_measured["om/blind_share"]) == 1.0
-  total, logs = losses_with(lambda_color_blind=0.9)
-  assert 0.0 < float(logs["om/blind_share"]) < 1.0
-  assert 0.0 < float(logs["loss/color_blind"]) < float(logs["loss/color"])
-  np.testing.assert_allclose(float(total), float(base["loss/total"])
-                             + 0.9 * float(logs["loss/color_blind"]), rtol=1e-5)
-
-
 def test_step_shapes_and_loss_decrease(cap):
   scene, _, norm = cap
   cfg = resolve("cpu", **SMALL)
