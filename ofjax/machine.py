@@ -1,5 +1,6 @@
 """What a run ran on, for records and reports: host, CPU model, cores, platform, Python, JAX, and
-the ofjax commit.
+the ofjax commit; for telling why two machines give different numbers, the CPU's generation, its
+vector extensions and the numeric libraries' versions.
 
 One description shared by the sweep records, the experiments' reports and the benchmarks, so a
 table says the same machine the same way. `describe()` is a JSON-ready dict; `line(info)` its one
@@ -17,17 +18,64 @@ from pathlib import Path
 from typing import Any
 
 
-def cpu_model() -> str:
-  """The CPU's model name ("AMD EPYC 9B14"); the architecture where the OS does not say."""
+# The vector extensions XLA's CPU code generation chooses among: two machines that differ here may
+# compile the same step to different float arithmetic (a run repeats byte for byte only on one).
+SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile",
+              "asimd", "sve")
+# The distributions whose versions can change a result: the JAX compiler, the numeric libraries
+# training, export and evaluation use, and the association's.
+PACKAGES = ("jaxlib", "numpy", "scipy", "optax", "flax", "open3d", "open3d-cpu", "trimesh",
+            "scikit-image", "pycolmap")
+
+
+def _cpuinfo() -> dict[str, str]:
+  """The first processor's entries of /proc/cpuinfo (empty where there is none)."""
+  entries: dict[str, str] = {}
   try:
     with open("/proc/cpuinfo") as f:
       for entry in f:
-        if entry.startswith("model name"):
-          return entry.split(":", 1)[1].strip()
+        if not entry.strip():
+          break
+        key, _, value = entry.partition(":")
+        entries[key.strip()] = value.strip()
   except OSError:
     pass
+  return entries
+
+
+def cpu_model() -> str:
+  """The CPU's model name ("AMD EPYC 9B14"); the architecture where the OS does not say."""
   # macOS and Windows: platform.processor() names the CPU (family) or is empty.
-  return platform.processor() or platform.machine()
+  return _cpuinfo().get("model name") or platform.processor() or platform.machine()
+
+
+def cpu_id() -> str | None:
+  """"family 25 model 17" on x86 Linux (the generation, which a generic model name such as "AMD
+  EPYC" hides), "implementer 0x41 part 0xd40" on ARM Linux, None elsewhere."""
+  info = _cpuinfo()
+  if "cpu family" in info and "model" in info:
+    return f"family {info['cpu family']} model {info['model']}"
+  if "CPU implementer" in info and "CPU part" in info:
+    return f"implementer {info['CPU implementer']} part {info['CPU part']}"
+  return None
+
+
+def simd() -> list[str]:
+  """Which of SIMD_FLAGS the CPU has (Linux; empty elsewhere)."""
+  info = _cpuinfo()
+  flags = set((info.get("flags") or info.get("Features") or "").split())
+  return [f for f in SIMD_FLAGS if f in flags]
+
+
+def packages() -> dict[str, str]:
+  """{distribution: version} of the installed PACKAGES."""
+  found = {}
+  for name in PACKAGES:
+    try:
+      found[name] = importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+      pass
+  return found
 
 
 def git_state(paths: tuple[str, ...] = ("ofjax",)) -> dict[str, Any]:
@@ -54,7 +102,8 @@ def git_state(paths: tuple[str, ...] = ("ofjax",)) -> dict[str, Any]:
 
 
 def describe(devices: bool = False) -> dict[str, Any]:
-  """The machine as a dict: host, platform, cpu, cpus, python, jax (version).
+  """The machine as a dict: host, platform, cpu, cpus, python, jax (version), cpu_id, simd,
+  packages (module functions of those names).
 
   devices: also JAX's backend and devices ("backend", "devices"). This initialises JAX's backend,
     so a process that runs no JAX (a sweep driver, a data job) leaves it False.
@@ -62,7 +111,8 @@ def describe(devices: bool = False) -> dict[str, Any]:
   info: dict[str, Any] = {
       "host": platform.node(), "platform": platform.platform(), "cpu": cpu_model(),
       "cpus": os.cpu_count(), "python": platform.python_version(),
-      "jax": importlib.metadata.version("jax")}
+      "jax": importlib.metadata.version("jax"), "cpu_id": cpu_id(), "simd": simd(),
+      "packages": packages()}
   if devices:
     import jax  # here, not at the top: describe() without devices must not initialise JAX
 
@@ -98,12 +148,14 @@ def scatter_regression_warning(jax_version: str, backend: str) -> str | None:
 
 
 def line(info: dict[str, Any]) -> str:
-  """One line for a report: "vm: AMD EPYC 9B14, 2 CPUs, Linux-..., Python 3.11.7, JAX 0.10.2".
+  """One line for a report: "vm: AMD EPYC (family 25 model 17), 2 CPUs, Linux-..., Python 3.11.7,
+  JAX 0.10.2".
 
-  Records written before the CPU model and the JAX version were kept (key missing) read without
-  them.
+  Records written before the CPU model, its generation and the JAX version were kept (key
+  missing) read without them.
   """
-  parts = [f"{info['host']}: {info['cpu']}" if info.get("cpu") else info["host"],
+  cpu = f"{info['cpu']} ({info['cpu_id']})" if info.get("cpu_id") else info.get("cpu")
+  parts = [f"{info['host']}: {cpu}" if cpu else info["host"],
            f"{info['cpus']} CPUs", info["platform"], f"Python {info['python']}"]
   if info.get("jax"):
     parts.append(f"JAX {info['jax']}"

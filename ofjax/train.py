@@ -364,7 +364,8 @@ def train(scene: scene_lib.Scene, cfg: Config, run_dir: Path | None = None, prog
           "config": cfg.to_dict(), "units": scene.units,
           "normalization": dataclasses.asdict(norm), "observed_box": box,
           "jax": jax.__version__, "backend": jax.default_backend(),
-          "ofjax": {"version": ofjax_version, **machine.git_state()}, **prefit_logs,
+          "ofjax": {"version": ofjax_version, **machine.git_state()},
+          "machine": machine.describe(), **prefit_logs,
           **(meta or {})})
     # The cameras the run was trained with, beside its config: ofjax.export keeps what they see.
     from ofjax import export

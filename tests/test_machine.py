@@ -22,6 +22,30 @@ def test_describe_is_json_and_names_the_cpu():
   assert info["cpu"]
 
 
+def test_describe_names_the_cpu_generation_its_vector_extensions_and_the_libraries():
+  """Against /proc/cpuinfo read here (first processor) and the modules' own versions."""
+  import jaxlib
+  import numpy
+  import scipy
+
+  info = machine.describe()
+  assert json.loads(json.dumps(info)) == info
+  assert info["packages"]["jaxlib"] == jaxlib.__version__
+  assert info["packages"]["numpy"] == numpy.__version__
+  assert info["packages"]["scipy"] == scipy.__version__
+  assert set(info["packages"]) <= set(machine.PACKAGES)
+  if not os.path.exists("/proc/cpuinfo"):
+    assert info["cpu_id"] is None and info["simd"] == []
+    return
+  first = Path("/proc/cpuinfo").read_text().split("\n\n")[0].splitlines()
+  fields = {k.strip(): v.strip() for k, _, v in (ln.partition(":") for ln in first)}
+  if "cpu family" in fields:
+    assert info["cpu_id"] == f"family {fields['cpu family']} model {fields['model']}"
+    assert info["cpu_id"] in machine.line(info)
+  flags = (fields.get("flags") or fields.get("Features") or "").split()
+  assert info["simd"] == [f for f in machine.SIMD_FLAGS if f in flags]
+
+
 def test_describe_devices_lists_jax_backend():
   import jax
 

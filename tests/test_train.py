@@ -1,6 +1,7 @@
 """The train step: batches, schedule, shapes, loss decrease, and an end-to-end accuracy check."""
 
 import dataclasses
+import importlib.metadata
 import json
 
 import chex
@@ -221,6 +222,9 @@ def test_end_to_end_chamfer_on_the_cap(cap, tmp_path):
   written = json.loads((tmp_path / "config.json").read_text())
   assert written["ofjax"]["version"] == ofjax.__version__
   assert written["ofjax"]["commit"] == machine.git_state()["commit"]
+  # What a result depends on beyond the code: the compiler's and the numeric libraries' versions.
+  assert written["machine"]["packages"]["jaxlib"] == importlib.metadata.version("jaxlib")
+  assert written["machine"]["packages"]["numpy"] == np.__version__
 
 
 def test_set_overrides_any_field_and_a_wli_init_needs_wli_rays(cap, tmp_path):
