@@ -210,7 +210,7 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
     # A mesh kept from an earlier remaking keeps its export time and the commit that made it.
     stages = {k: v for k, v in res["stages_s"].items()
               if k != "eval" and (k != "export" or not stale_mesh)}
-    made = (res.get("mesh_git") or (res.get("eval_git") if was_remade(res) else None))
+    made = remade_at(res)
     if stale_mesh and neural:
       grid = mesh_grid()
       log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps, "
@@ -619,9 +619,13 @@ def figure(path: Path, scene: str, records: list[dict]):
   return fig
 
 
-def was_remade(res: dict) -> bool:
-  """Whether a result's mesh was made again after its run (`reevaluate`)."""
-  return "export" in res.get("stages_s", {}) or bool(res.get("mesh_remade"))
+def remade_at(res: dict) -> dict | None:
+  """The git state of the commit that made a result's mesh again after its run (`reevaluate`),
+  None when the run's own mesh is kept. Records from before `mesh_git` was kept name only the
+  commit that evaluated them again, which then also made the mesh."""
+  if "export" in res.get("stages_s", {}) or res.get("mesh_remade"):
+    return res.get("mesh_git") or res.get("eval_git")
+  return None
 
 
 def commits_line(records: list[dict]) -> str:
@@ -643,9 +647,9 @@ def commits_line(records: list[dict]) -> str:
       continue
     c = res["eval_git"]["commit"][:7]
     evaluated[c] = evaluated.get(c, 0) + 1
-    if was_remade(res):
-      m = res.get("mesh_git", res["eval_git"])["commit"][:7]
-      again[m] = again.get(m, 0) + 1
+    made = remade_at(res)
+    if made is not None:
+      again[made["commit"][:7]] = again.get(made["commit"][:7], 0) + 1
   return ("Runs by the commit they ran at (a finished run is kept while its config fingerprint is "
           "unchanged): " + "; ".join(parts) + "."
           + "".join(f" {n} of their meshes made again at `{c}` (neural ones exported from the "
@@ -664,9 +668,9 @@ def provenance(res: dict) -> str:
   """' (mesh made again at C, evaluated again at D)' for a run `reevaluate` touched, else ''."""
   if "eval_git" not in res:
     return ""
-  made = (f"mesh made again at {res.get('mesh_git', res['eval_git'])['commit'][:10]}, "
-          if was_remade(res) else "")
-  return f" ({made}evaluated again at {res['eval_git']['commit'][:10]})"
+  made = remade_at(res)
+  mesh = f"mesh made again at {made['commit'][:10]}, " if made is not None else ""
+  return f" ({mesh}evaluated again at {res['eval_git']['commit'][:10]})"
 
 
 def report(settings: dict, records: list[dict], summary: dict, figures: dict) -> str:

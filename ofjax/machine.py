@@ -9,6 +9,7 @@ line for a report's header.
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import os
 import platform
@@ -28,8 +29,10 @@ PACKAGES = ("jaxlib", "numpy", "scipy", "optax", "flax", "open3d", "open3d-cpu",
             "scikit-image", "pycolmap")
 
 
+@functools.lru_cache(maxsize=1)
 def _cpuinfo() -> dict[str, str]:
-  """The first processor's entries of /proc/cpuinfo (empty where there is none)."""
+  """The first processor's entries of /proc/cpuinfo (empty where there is none); read once per
+  process, as describe() asks it three times. Callers must not change the dict."""
   entries: dict[str, str] = {}
   try:
     with open("/proc/cpuinfo") as f:
