@@ -83,12 +83,6 @@ class RenderConfig:
 class LossConfig:
   """Loss weights (paper Sec. 3.4 and the reference code); each loss is summed as lambda * loss."""
   lambda_color: float = 1.0  # OM colour MSE
-  # None: lambda_color throughout, as the paper. Else the colour weight falls from lambda_color
-  # to this value along a half cosine between color_decay_start x train.steps and the last step
-  # (losses.color_weight): the photos shape what only they see early, and the WLI has the last
-  # word on what it measured. Not in the paper (experiments/README.md).
-  lambda_color_final: float | None = None
-  color_decay_start: float = 0.5  # fraction of the run at which the colour weight starts to fall
   lambda_residual: float = 0.001  # L2 of the composited residual colour (OM rays)
   lambda_wli: float = 1.0  # WLI depth MSE in reference units (TrainConfig.reference_unit; voids masked)
   # SDF^2 (reference units) at the measured WLI points, o + D d: the depth loss constrains only the
@@ -99,11 +93,6 @@ class LossConfig:
   lambda_eikonal: float = 0.1  # (|grad sdf| - 1)^2 on all samples
   lambda_sparsity: float = 0.01  # exp(-scale * |sdf|) of the reference, on uniform samples
   sparsity_scale: float = 1.0  # sharpness of the sparsity term, per reference unit of SDF
-
-  def __post_init__(self):
-    if not 0.0 <= self.color_decay_start < 1.0:
-      raise ValueError(f"loss.color_decay_start {self.color_decay_start}: use a fraction of the "
-                       "run in [0, 1)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,10 +149,6 @@ class TrainConfig:
 # TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
 # change them, and Config.fingerprint leaves them out.
 KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
-# Fields added after runs were recorded (experiments/results), left out of the fingerprint while
-# at their default, with which a run trains exactly as before they existed: the recorded runs'
-# fingerprints stay valid and `make reproduce` does not retrain them.
-ADDED_FIELDS = {"loss": ("lambda_color_final", "color_decay_start")}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -197,15 +182,10 @@ class Config:
     return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
   def fingerprint(self) -> str:
-    """8 hex digits of the resolved values but KEEPING_FIELDS (and ADDED_FIELDS at their
-    defaults): runs with equal fingerprints trained alike (how they were kept or meshed may
-    differ)."""
+    """8 hex digits of the resolved values but KEEPING_FIELDS: runs with equal fingerprints
+    trained alike (how they were kept or meshed may differ)."""
     d = self.to_dict()
     d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
-    for part, names in ADDED_FIELDS.items():
-      default = getattr(Config(), part)
-      d[part] = {k: v for k, v in d[part].items()
-                 if not (k in names and v == getattr(default, k))}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 

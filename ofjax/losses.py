@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ofjax.config import LossConfig
-
 from ofjax.fields import safe_norm
 
 
@@ -18,18 +16,6 @@ def masked_mean(x, mask):
   """Mean of x: [R] over mask: [R] (0 when the mask is empty)."""
   mask = mask.astype(x.dtype)
   return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
-
-
-def color_weight(step, lc: LossConfig, steps: int):
-  """[] the colour MSE's weight at `step` of a `steps`-step run: lc.lambda_color, or with
-  lc.lambda_color_final set, a half cosine from lambda_color down to it between
-  lc.color_decay_start * steps and the last step (a function of the step, not module state)."""
-  if lc.lambda_color_final is None:
-    return jnp.float32(lc.lambda_color)
-  start = lc.color_decay_start * steps
-  frac = jnp.clip((jnp.asarray(step, jnp.float32) - start) / max(steps - 1 - start, 1.0), 0.0, 1.0)
-  return lc.lambda_color_final + (lc.lambda_color - lc.lambda_color_final) * 0.5 * (
-      1.0 + jnp.cos(jnp.pi * frac))
 
 
 def color(pred, target, mask):

@@ -237,12 +237,8 @@ def compute_losses(params, batch, key, step, cfg: Config, field_fns=fields.field
     # The SDF alone, differentiable in params: its spatial gradient is not needed here.
     terms["wli_surface"] = losses.wli_surface(unit * fields.sdf_value(params, points, cfg),
                                               measured)
-  weights = {k: getattr(lc, f"lambda_{k}") for k in terms}
-  weights["color"] = losses.color_weight(step, lc, cfg.train.steps)
-  total = sum(weights[k] * v for k, v in terms.items())
+  total = sum(getattr(lc, f"lambda_{k}") * v for k, v in terms.items())
   logs = {f"loss/{k}": v for k, v in terms.items()}
-  if lc.lambda_color_final is not None:  # static: a constant weight is in config.json already
-    logs["weight/color"] = weights["color"]
   logs["loss/total"] = total
   logs["inv_s"] = fields.inv_s(params)
   return total, logs

@@ -14,7 +14,7 @@ import trimesh
 
 import analytic_scene
 import ofjax
-from ofjax import export, fields, losses, machine, metrics, train
+from ofjax import export, fields, machine, metrics, train
 from ofjax import scene as scene_lib
 from ofjax.config import resolve
 from ofjax.errors import UserError
@@ -110,59 +110,6 @@ def test_lr_schedule_warms_up_then_decays_to_a_tenth():
   np.testing.assert_allclose(float(s(20000)), 0.001, rtol=1e-5)
   mid = 500 + (20000 - 500) // 2
   np.testing.assert_allclose(float(s(mid)), 0.01 * 0.1**((mid - 500) / 19500), rtol=1e-4)
-
-
-class ColorWeightTest(chex.TestCase):
-  """losses.color_weight against a float64 NumPy half cosine, with and without jit."""
-
-  @chex.variants(with_jit=True, without_jit=True)
-  def test_half_cosine_from_the_weight_to_the_final_one(self):
-    lc = resolve("cpu", loss={"lambda_color": 1.0, "lambda_color_final": 0.1,
-                              "color_decay_start": 0.25}).loss
-    steps = 1000
-    weight = self.variant(lambda step: losses.color_weight(step, lc, steps))
-    for step in (0, 100, 250, 251, 400, 625, 900, 998, 999):
-      start = 0.25 * steps
-      frac = min(max((step - start) / (steps - 1 - start), 0.0), 1.0)
-      expect = 0.1 + 0.9 * 0.5 * (1.0 + np.cos(np.pi * np.float64(frac)))
-      chex.assert_shape(weight(jnp.int32(step)), ())
-      np.testing.assert_allclose(float(weight(jnp.int32(step))), expect, rtol=1e-6, err_msg=step)
-    assert float(weight(jnp.int32(0))) == 1.0
-    np.testing.assert_allclose(float(weight(jnp.int32(steps - 1))), 0.1, rtol=1e-6)
-
-  @chex.variants(with_jit=True, without_jit=True)
-  def test_constant_without_a_final_weight(self):
-    lc = resolve("cpu").loss
-    assert lc.lambda_color_final is None
-    weight = self.variant(lambda step: losses.color_weight(step, lc, 1200))
-    for step in (0, 600, 1199):
-      assert float(weight(jnp.int32(step))) == np.float32(lc.lambda_color)
-
-
-def test_color_decay_start_outside_the_run_is_refused():
-  for start in (-0.1, 1.0):
-    with pytest.raises(ValueError, match="color_decay_start"):
-      resolve("cpu", loss={"color_decay_start": start})
-
-
-def test_the_scheduled_colour_weight_enters_the_total(cap):
-  """With a decaying colour weight the total is that of a constant weight equal to the schedule's
-  value at the step, and the weight is logged; without one nothing is added to the logs."""
-  scene, _, norm = cap
-  data = train.prepare_data(scene, norm)
-  steps, step = 60, 45
-  decaying = resolve("cpu", loss={"lambda_color": 1.0, "lambda_color_final": 0.1}, **SMALL)
-  batch = train.sample_batch(data, jax.random.PRNGKey(1), decaying)
-  params = fields.init_params(jax.random.PRNGKey(0), decaying)
-  total, logs = train.compute_losses(params, batch, jax.random.PRNGKey(2), step, decaying)
-  frac = (step - 0.5 * steps) / (steps - 1 - 0.5 * steps)
-  at_step = 0.1 + 0.9 * 0.5 * (1.0 + np.cos(np.pi * frac))
-  np.testing.assert_allclose(float(logs["weight/color"]), at_step, rtol=1e-6)
-  constant = resolve("cpu", loss={"lambda_color": float(at_step)}, **SMALL)
-  total_c, logs_c = train.compute_losses(params, batch, jax.random.PRNGKey(2), step, constant)
-  assert "weight/color" not in logs_c
-  np.testing.assert_allclose(float(total), float(total_c), rtol=1e-5)
-  assert float(logs["loss/color"]) > 0
 
 
 def test_reference_scale_is_ten_units_across_the_median_scan(cap):
