@@ -244,7 +244,9 @@ def field_fns(params, cfg: Config):
   differentiable; sdf_fn(x) -> sdf has no gradient (sample placement).
   """
   frozen = jax.lax.stop_gradient(params)
-  return (lambda x: geometry(params, x, cfg), lambda x, n, f, v: colors(params, x, n, f, v, cfg),
+  shading = (lambda n: n) if cfg.model.color_normal_grad else jax.lax.stop_gradient
+  return (lambda x: geometry(params, x, cfg),
+          lambda x, n, f, v: colors(params, x, shading(n), f, v, cfg),
           lambda x: sdf_value(frozen, x, cfg))
 
 
