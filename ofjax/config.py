@@ -60,15 +60,12 @@ class ModelConfig:
   # mesh (experiments/README.md), so the fit keeps 1.
   wli_fit_lambda_distance: float = 1.0
   residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
-  # Inputs of the colour MLPs ("normal", "feature") that pass no gradient back into the SDF:
-  # with both, the photos move the surface only through where it is (the rendering weights).
-  # Not in the paper: () (experiments/README.md).
-  color_stop_grad: tuple[str, ...] = ()
+  # False: the colour MLPs see the normal without a gradient back into the SDF, so the photos
+  # move the surface only through where it is (the rendering weights) and the shared feature,
+  # not by bending normals to shade texture. Not in the paper: True (experiments/README.md).
+  color_normal_grad: bool = True
 
   def __post_init__(self):
-    if not set(self.color_stop_grad) <= {"normal", "feature"}:
-      raise ValueError(f"model.color_stop_grad {self.color_stop_grad!r}: use a list of 'normal' "
-                       "and 'feature'")
     if self.init_shape not in INIT_SHAPES:
       raise ValueError(f"model.init_shape {self.init_shape!r}: use one of {', '.join(INIT_SHAPES)}")
 
@@ -159,7 +156,7 @@ KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row"
 # Fields added after runs were recorded (experiments/results), left out of the fingerprint while
 # at their default, with which a run trains exactly as before they existed: the recorded runs'
 # fingerprints stay valid and `make reproduce` does not retrain them.
-ADDED_FIELDS = {"model": ("color_stop_grad",)}
+ADDED_FIELDS = {"model": ("color_normal_grad",)}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:

@@ -244,10 +244,9 @@ def field_fns(params, cfg: Config):
   differentiable; sdf_fn(x) -> sdf has no gradient (sample placement).
   """
   frozen = jax.lax.stop_gradient(params)
-  stop = cfg.model.color_stop_grad
-  held = {k: jax.lax.stop_gradient if k in stop else (lambda a: a) for k in ("normal", "feature")}
+  shading = (lambda n: n) if cfg.model.color_normal_grad else jax.lax.stop_gradient
   return (lambda x: geometry(params, x, cfg),
-          lambda x, n, f, v: colors(params, x, held["normal"](n), held["feature"](f), v, cfg),
+          lambda x, n, f, v: colors(params, x, shading(n), f, v, cfg),
           lambda x: sdf_value(frozen, x, cfg))
 
 

@@ -115,12 +115,13 @@ def test_safe_norm_has_finite_gradient_at_zero():
   assert bool(jnp.all(jnp.isfinite(g)))
 
 
-@pytest.mark.parametrize("stop", [(), ("normal",), ("feature",), ("normal", "feature")])
-def test_colour_inputs_without_gradient_into_the_sdf(stop):
-  """model.color_stop_grad: the colour's gradient in params is that of the same colours with the
-  stopped inputs (normal, feature) held at their current values, computed apart as constants;
-  with nothing stopped it differs from holding either."""
-  cfg = dataclasses.replace(CFG, model=dataclasses.replace(CFG.model, color_stop_grad=stop))
+@pytest.mark.parametrize("normal_grad", [True, False])
+def test_colour_normal_gradient_switch(normal_grad):
+  """model.color_normal_grad=False: the colour's gradient in params is that of the same colours
+  with the normals held at their current values (computed apart, as constants); True: it differs,
+  the photos also bend the normals."""
+  cfg = dataclasses.replace(CFG, model=dataclasses.replace(CFG.model,
+                                                           color_normal_grad=normal_grad))
   p = _params_with_live_encoding(3)
   rng = np.random.default_rng(4)
   x = jnp.asarray(rng.uniform(-0.8, 0.8, (48, 3)), jnp.float32)
@@ -132,17 +133,17 @@ def test_colour_inputs_without_gradient_into_the_sdf(stop):
     c_global, c_res = color_fn(x, fields.unit(grad), f, v)
     return jnp.sum(c_global**2) + jnp.sum(c_res)
 
-  _, grad_now, f_now = fields.geometry(p, x, cfg)
+  n_now = fields.unit(fields.geometry(p, x, cfg)[1])
 
-  def held(params, inputs):
-    _, grad, f = fields.geometry(params, x, cfg)
-    n = fields.unit(grad_now) if "normal" in inputs else fields.unit(grad)
-    c_global, c_res = fields.colors(params, x, n, f_now if "feature" in inputs else f, v, cfg)
+  def normals_held(params):
+    _, _, f = fields.geometry(params, x, cfg)
+    c_global, c_res = fields.colors(params, x, n_now, f, v, cfg)
     return jnp.sum(c_global**2) + jnp.sum(c_res)
 
-  got = jax.grad(through_field_fns)(p)
-  chex.assert_trees_all_close(got, jax.grad(held)(p, stop), rtol=1e-5, atol=1e-7)
-  if not stop:
-    for inputs in (("normal",), ("feature",)):
-      assert not np.allclose(got["tables"], jax.grad(held)(p, inputs)["tables"], rtol=1e-3,
-                             atol=1e-7), inputs
+  got, held = jax.grad(through_field_fns)(p), jax.grad(normals_held)(p)
+  if normal_grad:
+    assert not np.allclose(got["tables"], held["tables"], rtol=1e-3, atol=1e-7)
+  else:
+    chex.assert_trees_all_close(got, held, rtol=1e-5, atol=1e-7)
+  # The colour MLPs' own gradient never depends on the switch.
+  chex.assert_trees_all_close(got["color"], held["color"], rtol=1e-5, atol=1e-7)
