@@ -113,37 +113,3 @@ def test_colour_ranges_and_residual_switch():
 def test_safe_norm_has_finite_gradient_at_zero():
   g = jax.grad(lambda v: fields.safe_norm(v).sum())(jnp.zeros((2, 3)))
   assert bool(jnp.all(jnp.isfinite(g)))
-
-
-@pytest.mark.parametrize("normal_grad", [True, False])
-def test_colour_normal_gradient_switch(normal_grad):
-  """model.color_normal_grad=False: the colour's gradient in params is that of the same colours
-  with the normals held at their current values (computed apart, as constants); True: it differs,
-  the photos also bend the normals."""
-  cfg = dataclasses.replace(CFG, model=dataclasses.replace(CFG.model,
-                                                           color_normal_grad=normal_grad))
-  p = _params_with_live_encoding(3)
-  rng = np.random.default_rng(4)
-  x = jnp.asarray(rng.uniform(-0.8, 0.8, (48, 3)), jnp.float32)
-  v = fields.unit(jnp.asarray(rng.normal(size=(48, 3)), jnp.float32))
-
-  def through_field_fns(params):
-    geometry_fn, color_fn, _ = fields.field_fns(params, cfg)
-    _, grad, f = geometry_fn(x)
-    c_global, c_res = color_fn(x, fields.unit(grad), f, v)
-    return jnp.sum(c_global**2) + jnp.sum(c_res)
-
-  n_now = fields.unit(fields.geometry(p, x, cfg)[1])
-
-  def normals_held(params):
-    _, _, f = fields.geometry(params, x, cfg)
-    c_global, c_res = fields.colors(params, x, n_now, f, v, cfg)
-    return jnp.sum(c_global**2) + jnp.sum(c_res)
-
-  got, held = jax.grad(through_field_fns)(p), jax.grad(normals_held)(p)
-  if normal_grad:
-    assert not np.allclose(got["tables"], held["tables"], rtol=1e-3, atol=1e-7)
-  else:
-    chex.assert_trees_all_close(got, held, rtol=1e-5, atol=1e-7)
-  # The colour MLPs' own gradient never depends on the switch.
-  chex.assert_trees_all_close(got["color"], held["color"], rtol=1e-5, atol=1e-7)
