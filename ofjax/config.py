@@ -60,10 +60,6 @@ class ModelConfig:
   # mesh (experiments/README.md), so the fit keeps 1.
   wli_fit_lambda_distance: float = 1.0
   residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
-  # False: the colour MLPs see the normal without a gradient back into the SDF, so the photos
-  # move the surface only through where it is (the rendering weights) and the shared feature,
-  # not by bending normals to shade texture. Not in the paper: True (experiments/README.md).
-  color_normal_grad: bool = True
 
   def __post_init__(self):
     if self.init_shape not in INIT_SHAPES:
@@ -153,10 +149,6 @@ class TrainConfig:
 # TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
 # change them, and Config.fingerprint leaves them out.
 KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
-# Fields added after runs were recorded (experiments/results), left out of the fingerprint while
-# at their default, with which a run trains exactly as before they existed: the recorded runs'
-# fingerprints stay valid and `make reproduce` does not retrain them.
-ADDED_FIELDS = {"model": ("color_normal_grad",)}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -194,10 +186,6 @@ class Config:
     trained alike (how they were kept or meshed may differ)."""
     d = self.to_dict()
     d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
-    for part, names in ADDED_FIELDS.items():
-      default = getattr(Config(), part)
-      d[part] = {k: v for k, v in d[part].items()
-                 if not (k in names and v == getattr(default, k))}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 

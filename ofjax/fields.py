@@ -244,9 +244,7 @@ def field_fns(params, cfg: Config):
   differentiable; sdf_fn(x) -> sdf has no gradient (sample placement).
   """
   frozen = jax.lax.stop_gradient(params)
-  shading = (lambda n: n) if cfg.model.color_normal_grad else jax.lax.stop_gradient
-  return (lambda x: geometry(params, x, cfg),
-          lambda x, n, f, v: colors(params, x, shading(n), f, v, cfg),
+  return (lambda x: geometry(params, x, cfg), lambda x, n, f, v: colors(params, x, n, f, v, cfg),
           lambda x: sdf_value(frozen, x, cfg))
 
 
