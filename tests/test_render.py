@@ -145,39 +145,3 @@ def test_uncolored_rays_change_nothing_the_colour_losses_see():
     np.testing.assert_array_equal(np.asarray(skipped[name][:k]), 0.0, err_msg=name)
   np.testing.assert_allclose(np.asarray(jax.grad(loss)(theta, k)),
                              np.asarray(jax.grad(loss)(theta, 0)), rtol=1e-6, atol=1e-7)
-
-
-@pytest.mark.parametrize("weight_grad", [True, False])
-def test_colour_weight_gradient_switch(weight_grad):
-  """render.color_weight_grad=False: a colour that depends only on where the samples are moves the
-  sphere's radius not at all (the weights held), while the depth's gradient is unchanged."""
-  n_rays = 8
-  rng = np.random.default_rng(5)
-  o = jnp.asarray(np.concatenate([rng.uniform(-0.3, 0.3, (n_rays, 2)), np.full((n_rays, 1), -2.5)],
-                                 1), jnp.float32)
-  d = jnp.asarray(np.tile([0.0, 0.0, 1.0], (n_rays, 1)), jnp.float32)
-  near, far, _ = cameras.box_near_far(o, d)
-
-  def outputs(radius, rc):
-    geometry_fn = lambda x: (jnp.linalg.norm(x, axis=-1) - radius, x / jnp.linalg.norm(
-        x, axis=-1, keepdims=True), jnp.zeros(x.shape[:-1] + (0,)))
-    # Colour from the sample's depth alone: only the weights tie it to the radius.
-    color_fn = lambda x, n, f, v: (jax.nn.sigmoid(x * 3.0), jnp.tanh(x))
-    sdf_fn = lambda x: jnp.linalg.norm(x, axis=-1) - jax.lax.stop_gradient(radius)
-    out = render.render_rays(geometry_fn, color_fn, sdf_fn, o, d, near, far,
-                             jax.random.PRNGKey(1), 50.0, 1.0, rc)
-    return jnp.sum(out["color"]), jnp.sum(out["depth"])
-
-  rc = RenderConfig(n_samples=32, n_importance=16, n_importance_steps=2,
-                    color_weight_grad=weight_grad)
-  plain = RenderConfig(n_samples=32, n_importance=16, n_importance_steps=2)
-  d_color = jax.grad(lambda r: outputs(r, rc)[0])(0.5)
-  d_depth = jax.grad(lambda r: outputs(r, rc)[1])(0.5)
-  np.testing.assert_allclose(float(d_depth), float(jax.grad(lambda r: outputs(r, plain)[1])(0.5)),
-                             rtol=1e-6)
-  assert float(d_depth) < 0  # a larger sphere is hit earlier
-  if weight_grad:
-    assert abs(float(d_color)) > 1e-3
-  else:
-    assert float(d_color) == 0.0
-  np.testing.assert_allclose(float(outputs(0.5, rc)[0]), float(outputs(0.5, plain)[0]), rtol=1e-6)
