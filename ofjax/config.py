@@ -77,10 +77,6 @@ class RenderConfig:
   cos_anneal_steps: int = 20000  # NeuS cos-anneal ratio goes 0 -> 1 over these steps
   wli_guided_samples: int = 0  # extra samples per WLI ray placed around the measured depth
   wli_guided_width: float = 0.02  # half-width (normalised units) of that depth-guided band
-  # False: the colours are composited with the weights held constant, so the photos move the
-  # surface through the colour MLPs' inputs (normal, feature) only, not through where the
-  # weights put it. Not in the paper: True (experiments/README.md).
-  color_weight_grad: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,10 +149,6 @@ class TrainConfig:
 # TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
 # change them, and Config.fingerprint leaves them out.
 KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
-# Fields added after runs were recorded (experiments/results), left out of the fingerprint while
-# at their default, with which a run trains exactly as before they existed: the recorded runs'
-# fingerprints stay valid and `make reproduce` does not retrain them.
-ADDED_FIELDS = {"render": ("color_weight_grad",)}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -194,10 +186,6 @@ class Config:
     trained alike (how they were kept or meshed may differ)."""
     d = self.to_dict()
     d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
-    for part, names in ADDED_FIELDS.items():
-      default = getattr(Config(), part)
-      d[part] = {k: v for k, v in d[part].items()
-                 if not (k in names and v == getattr(default, k))}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 

@@ -168,11 +168,10 @@ def render_rays(geometry_fn, color_fn, sdf_fn, o, d, near, far, key, inv_s, anne
   alpha = alpha_from_sdf_pair(sdf - iter_cos * dt * 0.5, sdf + iter_cos * dt * 0.5, inv_s)
   w = composite_weights(alpha)
   acc = jnp.sum(w, -1)
-  wc = (w if rc.color_weight_grad else jax.lax.stop_gradient(w))[..., None]
   return {
-      "color": jnp.sum(wc * (c_global + c_res), -2),
-      "color_res": jnp.sum(wc * c_res, -2),
-      "color_global": jnp.sum(wc * c_global, -2),
+      "color": jnp.sum(w[..., None] * (c_global + c_res), -2),
+      "color_res": jnp.sum(w[..., None] * c_res, -2),
+      "color_global": jnp.sum(w[..., None] * c_global, -2),
       "depth": jnp.sum(w * mid, -1) + (1.0 - acc) * far,
       "normal": jnp.sum(w[..., None] * unit(grad), -2),
       "acc": acc,
