@@ -32,6 +32,14 @@ def _finished(job: sweep.Job, **result) -> dict:
   return {**record, "skipped": True}
 
 
+def test_committed_results_were_trained_with_the_committed_preset():
+  """The fingerprint the committed results name is the one ablation.py trains with now, so `make
+  reproduce` keeps their runs instead of training them again."""
+  committed = Path(__file__).resolve().parents[1] / "experiments/results/ablation.json"
+  recorded = json.loads(committed.read_text())
+  assert recorded["settings"]["preset_fingerprint"] == ablation.preset_fingerprint()
+
+
 def test_reevaluate_redoes_only_runs_evaluated_with_other_arguments(tmp_path, monkeypatch):
   """An associated run evaluated before --poses is re-evaluated (its training kept, both commits
   recorded, its record file rewritten); a neural run whose mesh was extracted with another vertex
