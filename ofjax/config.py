@@ -34,6 +34,7 @@ class HashConfig:
 
 
 INIT_SHAPES = ("sphere", "plane", "wli")
+COLOR_FEATURES = ("shared", "own")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,10 +61,19 @@ class ModelConfig:
   # mesh (experiments/README.md), so the fit keeps 1.
   wli_fit_lambda_distance: float = 1.0
   residual: bool = True  # use the residual colour branch (False: the "fused w/o residual" ablation)
+  # What the colour MLPs G and R see beside x, n (and v): "shared" is the SDF network's feature f,
+  # as the paper and the reference, so the photos' gradient also reaches the SDF network and the
+  # hash table through f; "own" is a hash encoding of their own (the same HashConfig, a separate
+  # table) in place of f, so the photos move the geometry only through the normal and the
+  # rendering weights (PermutoSDF's separate colour lattice; not in the paper).
+  color_features: str = "shared"
 
   def __post_init__(self):
     if self.init_shape not in INIT_SHAPES:
       raise ValueError(f"model.init_shape {self.init_shape!r}: use one of {', '.join(INIT_SHAPES)}")
+    if self.color_features not in COLOR_FEATURES:
+      raise ValueError(f"model.color_features {self.color_features!r}: use one of "
+                       f"{', '.join(COLOR_FEATURES)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,6 +159,10 @@ class TrainConfig:
 # TrainConfig fields that only say how a run is kept and meshed, not what it trains: --resume may
 # change them, and Config.fingerprint leaves them out.
 KEEPING_FIELDS = ("checkpoint_every", "keep_checkpoints", "max_skipped_in_a_row", "mesh_resolution")
+# Fields added after runs were recorded (experiments/results), left out of the fingerprint while
+# at their default, with which a run trains exactly as before they existed: the recorded runs'
+# fingerprints stay valid and `make reproduce` does not retrain them.
+ADDED_FIELDS = {"model": ("color_features",)}
 
 
 def json_tuples(fields: dict[str, Any]) -> dict[str, Any]:
@@ -182,10 +196,15 @@ class Config:
     return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
   def fingerprint(self) -> str:
-    """8 hex digits of the resolved values but KEEPING_FIELDS: runs with equal fingerprints
-    trained alike (how they were kept or meshed may differ)."""
+    """8 hex digits of the resolved values but KEEPING_FIELDS (and ADDED_FIELDS at their
+    defaults): runs with equal fingerprints trained alike (how they were kept or meshed may
+    differ)."""
     d = self.to_dict()
     d["train"] = {k: v for k, v in d["train"].items() if k not in KEEPING_FIELDS}
+    for part, names in ADDED_FIELDS.items():
+      default = getattr(Config(), part)
+      d[part] = {k: v for k, v in d[part].items()
+                 if not (k in names and v == getattr(default, k))}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 

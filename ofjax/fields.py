@@ -3,7 +3,9 @@
 Names: `x` [..., 3] points in the normalised box [-1, 1]^3; `sdf` signed distance (positive
 outside); `grad` d sdf / d x (its normalisation is the surface normal `n`); `f` the 13-d geometry
 feature; `v` unit view direction; `c_global` = G(x, n, f) in (0, 1), `c_res` = R(x, n, f, v) in
-(-1, 1); the rendered colour is c = c_global + c_res (paper Eqs. 1-2).
+(-1, 1); the rendered colour is c = c_global + c_res (paper Eqs. 1-2). With
+`model.color_features = "own"`, G and R see a hash encoding of x with its own table
+(`params["color_tables"]`) in place of f.
 
 The SDF network sees [x, hash(x)]; its spatial gradient is computed with the hash encoding's
 analytic Jacobian (encoding.encode_with_jacobian) chained with the MLP's input gradient, so the
@@ -143,12 +145,13 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
   k_tab, k_sdf, k_g, k_r = jax.random.split(key, 4)
   sdf_net, g_net, r_net = _nets(cfg)
   n_enc = cfg.hash.n_levels * cfg.hash.n_features
-  geo_in = 3 + 3 + cfg.model.feature_dim
+  own = cfg.model.color_features == "own"
+  geo_in = 3 + 3 + (n_enc if own else cfg.model.feature_dim)
   sdf = sdf_net.init(k_sdf, jnp.zeros((1, 3 + n_enc)))["params"]
   if cfg.model.init_shape in ("plane", "wli"):  # "wli" fits the plane to the WLI (ofjax.prefit)
     up, level = substrate if substrate is not None else ((0.0, 0.0, 1.0), 0.0)
     sdf = _plane_init(sdf, up, level, cfg.model.sdf_layers)
-  return {
+  params = {
       "tables": encoding.init_tables(k_tab, cfg.hash),
       "sdf": sdf,
       "color": g_net.init(k_g, jnp.zeros((1, geo_in)))["params"],
@@ -156,6 +159,9 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
       # NeuS: inverse std s = exp(10 * variance).
       "variance": jnp.asarray(cfg.render.init_inv_s, jnp.float32),
   }
+  if own:  # a key apart from the four above, so "shared" runs draw exactly what they always drew
+    params["color_tables"] = encoding.init_tables(jax.random.fold_in(key, 1), cfg.hash)
+  return params
 
 
 def inv_s(params):
@@ -209,7 +215,7 @@ def colors(params, x, n, f, v, cfg: Config):
     c_global: [..., 3]; c_res: [..., 3] (zeros when the residual branch is off).
   """
   _, _, r_net = _nets(cfg)
-  geo = jnp.concatenate([x, n, f], -1)
+  geo = _color_input(params, x, n, f, cfg)
   c_global = _global(params, geo, cfg)
   if not cfg.model.residual:
     return c_global, jnp.zeros_like(c_global)
@@ -218,8 +224,16 @@ def colors(params, x, n, f, v, cfg: Config):
   return c_global, c_res
 
 
+def _color_input(params, x, n, f, cfg: Config):
+  """[..., 6 + k] what G and R see of a point: [x, n, f], or [x, n, own hash(x)] when
+  model.color_features is "own" (f then unused)."""
+  if cfg.model.color_features == "own":
+    f = encoding.encode(params["color_tables"], x, cfg.hash)
+  return jnp.concatenate([x, n, f], -1)
+
+
 def _global(params, geo, cfg: Config):
-  """G on its input [x, n, f]: [..., 3] in (0, 1)."""
+  """G on its input (_color_input): [..., 3] in (0, 1)."""
   return jax.nn.sigmoid(_nets(cfg)[1].apply({"params": params["color"]}, geo))
 
 
@@ -251,4 +265,4 @@ def field_fns(params, cfg: Config):
 def global_color(params, x, cfg: Config):
   """Vertex colour for export: G(x, n, f) with n and f from the SDF network (paper Sec. 3.3.2)."""
   _, grad, f = geometry(params, x, cfg)
-  return _global(params, jnp.concatenate([x, unit(grad), f], -1), cfg)
+  return _global(params, _color_input(params, x, unit(grad), f, cfg), cfg)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ofjax import fields
+from ofjax import encoding, fields
 from ofjax.config import Config, HashConfig, ModelConfig
 
 CFG = Config(hash=HashConfig(n_levels=6, log2_table_size=12, base_resolution=4))
@@ -113,3 +113,74 @@ def test_colour_ranges_and_residual_switch():
 def test_safe_norm_has_finite_gradient_at_zero():
   g = jax.grad(lambda v: fields.safe_norm(v).sum())(jnp.zeros((2, 3)))
   assert bool(jnp.all(jnp.isfinite(g)))
+
+
+OWN = dataclasses.replace(CFG, model=ModelConfig(color_features="own"))
+
+
+def test_own_colour_features_replace_f_and_leave_the_shared_init_alone():
+  shared = fields.init_params(jax.random.PRNGKey(3), CFG)
+  own = fields.init_params(jax.random.PRNGKey(3), OWN)
+  assert "color_tables" not in shared and set(own) == set(shared) | {"color_tables"}
+  # The geometry draws the same values either way; the colour's table is its own.
+  chex.assert_trees_all_equal(own["tables"], shared["tables"])
+  chex.assert_trees_all_equal(own["sdf"], shared["sdf"])
+  chex.assert_equal_shape([own["color_tables"], own["tables"]])
+  assert not np.array_equal(np.asarray(own["color_tables"]), np.asarray(own["tables"]))
+  n_enc = CFG.hash.n_levels * CFG.hash.n_features
+  chex.assert_shape(own["color"]["Dense_0"]["kernel"], (3 + 3 + n_enc, CFG.model.color_hidden))
+
+
+def _colour_sum(cfg, params, x, n, v):
+  """Sum of G + R at x with the normal n held fixed and f from the SDF network."""
+  _, _, f = fields.geometry(params, x, cfg)
+  c_global, c_res = fields.colors(params, x, n, f, v, cfg)
+  return jnp.sum(c_global + c_res)
+
+
+@pytest.mark.parametrize("cfg,reaches_geometry", [(CFG, True), (OWN, False)])
+def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reaches_geometry):
+  p = fields.init_params(jax.random.PRNGKey(4), cfg)
+  k1, k2 = jax.random.split(jax.random.PRNGKey(5))
+  p["tables"] = jax.random.uniform(k1, p["tables"].shape, minval=-0.5, maxval=0.5)
+  if "color_tables" in p:
+    p["color_tables"] = jax.random.uniform(k2, p["tables"].shape, minval=-0.5, maxval=0.5)
+  rng = np.random.default_rng(6)
+  x = jnp.asarray(rng.uniform(-0.8, 0.8, (50, 3)), jnp.float32)
+  n = fields.unit(jnp.asarray(rng.normal(size=(50, 3)), jnp.float32))
+  v = fields.unit(jnp.asarray(rng.normal(size=(50, 3)), jnp.float32))
+  g = jax.grad(lambda q: _colour_sum(cfg, q, x, n, v))(p)
+  geometry_grad = max(float(jnp.abs(a).max()) for a in jax.tree.leaves((g["sdf"], g["tables"])))
+  if reaches_geometry:
+    assert geometry_grad > 1e-4
+  else:
+    assert geometry_grad == 0.0
+    assert float(jnp.abs(g["color_tables"]).max()) > 1e-4
+
+
+def test_own_colour_features_are_the_hash_encoding_of_x():
+  # G's input is [x, n, hash(x)] with the colour's table: a float64 forward of G written here
+  # (ReLU MLP, sigmoid) on the encoding of x agrees with fields.colors.
+  p = fields.init_params(jax.random.PRNGKey(7), OWN)
+  p["color_tables"] = jax.random.uniform(jax.random.PRNGKey(8), p["tables"].shape,
+                                         minval=-0.5, maxval=0.5)
+  rng = np.random.default_rng(9)
+  x = jnp.asarray(rng.uniform(-0.8, 0.8, (40, 3)), jnp.float32)
+  n = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
+  v = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
+  f_unused = jnp.full((40, CFG.model.feature_dim), 7.0, jnp.float32)
+  c_global, _ = fields.colors(p, x, n, f_unused, v, OWN)
+  h = np.concatenate([np.asarray(x, np.float64), np.asarray(n, np.float64),
+                      np.asarray(encoding.encode(p["color_tables"], x, OWN.hash), np.float64)], -1)
+  layers = p["color"]
+  for i in range(OWN.model.color_layers):
+    h = np.maximum(h @ np.asarray(layers[f"Dense_{i}"]["kernel"], np.float64) +
+                   np.asarray(layers[f"Dense_{i}"]["bias"], np.float64), 0.0)
+  out = h @ np.asarray(layers[f"Dense_{OWN.model.color_layers}"]["kernel"], np.float64) + \
+      np.asarray(layers[f"Dense_{OWN.model.color_layers}"]["bias"], np.float64)
+  np.testing.assert_allclose(np.asarray(c_global), 1.0 / (1.0 + np.exp(-out)), atol=1e-5)
+
+
+def test_unknown_colour_features_are_refused():
+  with pytest.raises(ValueError, match="color_features"):
+    ModelConfig(color_features="separate")

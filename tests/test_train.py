@@ -175,9 +175,10 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap, extra):
                              + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
 
 
-def test_step_shapes_and_loss_decrease(cap):
+@pytest.mark.parametrize("color_features", ["shared", "own"])
+def test_step_shapes_and_loss_decrease(cap, color_features):
   scene, _, norm = cap
-  cfg = resolve("cpu", **SMALL)
+  cfg = resolve("cpu", **SMALL, model={"color_features": color_features})
   data = train.prepare_data(scene, norm)
   opt = train.make_optimizer(cfg)
   params = fields.init_params(jax.random.PRNGKey(0), cfg)
