@@ -34,7 +34,7 @@ class HashConfig:
 
 
 INIT_SHAPES = ("sphere", "plane", "wli")
-COLOR_FEATURES = ("shared", "own")
+COLOR_FEATURES = ("shared", "own", "both")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +65,8 @@ class ModelConfig:
   # as the paper and the reference, so the photos' gradient also reaches the SDF network and the
   # hash table through f; "own" is a hash encoding of their own (the same HashConfig, a separate
   # table) in place of f, so the photos move the geometry only through the normal and the
-  # rendering weights (PermutoSDF's separate colour lattice; not in the paper).
+  # rendering weights (PermutoSDF's separate colour lattice; not in the paper); "both" is f and
+  # that encoding side by side.
   color_features: str = "shared"
 
   def __post_init__(self):

@@ -5,7 +5,7 @@ outside); `grad` d sdf / d x (its normalisation is the surface normal `n`); `f` 
 feature; `v` unit view direction; `c_global` = G(x, n, f) in (0, 1), `c_res` = R(x, n, f, v) in
 (-1, 1); the rendered colour is c = c_global + c_res (paper Eqs. 1-2). With
 `model.color_features = "own"`, G and R see a hash encoding of x with its own table
-(`params["color_tables"]`) in place of f.
+(`params["color_tables"]`) in place of f; with "both", beside f.
 
 The SDF network sees [x, hash(x)]; its spatial gradient is computed with the hash encoding's
 analytic Jacobian (encoding.encode_with_jacobian) chained with the MLP's input gradient, so the
@@ -145,8 +145,8 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
   k_tab, k_sdf, k_g, k_r = jax.random.split(key, 4)
   sdf_net, g_net, r_net = _nets(cfg)
   n_enc = cfg.hash.n_levels * cfg.hash.n_features
-  own = cfg.model.color_features == "own"
-  geo_in = 3 + 3 + (n_enc if own else cfg.model.feature_dim)
+  mode = cfg.model.color_features
+  geo_in = 3 + 3 + (mode != "own") * cfg.model.feature_dim + (mode != "shared") * n_enc
   sdf = sdf_net.init(k_sdf, jnp.zeros((1, 3 + n_enc)))["params"]
   if cfg.model.init_shape in ("plane", "wli"):  # "wli" fits the plane to the WLI (ofjax.prefit)
     up, level = substrate if substrate is not None else ((0.0, 0.0, 1.0), 0.0)
@@ -159,7 +159,7 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
       # NeuS: inverse std s = exp(10 * variance).
       "variance": jnp.asarray(cfg.render.init_inv_s, jnp.float32),
   }
-  if own:  # a key apart from the four above, so "shared" runs draw exactly what they always drew
+  if mode != "shared":  # a key apart from the four above, so "shared" runs draw exactly what they always drew
     params["color_tables"] = encoding.init_tables(jax.random.fold_in(key, 1), cfg.hash)
   return params
 
@@ -225,11 +225,13 @@ def colors(params, x, n, f, v, cfg: Config):
 
 
 def _color_input(params, x, n, f, cfg: Config):
-  """[..., 6 + k] what G and R see of a point: [x, n, f], or [x, n, own hash(x)] when
-  model.color_features is "own" (f then unused)."""
-  if cfg.model.color_features == "own":
-    f = encoding.encode(params["color_tables"], x, cfg.hash)
-  return jnp.concatenate([x, n, f], -1)
+  """[..., 6 + k] what G and R see of a point: [x, n, f] ("shared"), [x, n, own hash(x)] ("own":
+  f unused) or [x, n, f, own hash(x)] ("both"), by model.color_features."""
+  mode = cfg.model.color_features
+  parts = [x, n] + [f] * (mode != "own")
+  if mode != "shared":
+    parts.append(encoding.encode(params["color_tables"], x, cfg.hash))
+  return jnp.concatenate(parts, -1)
 
 
 def _global(params, geo, cfg: Config):

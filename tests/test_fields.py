@@ -116,19 +116,21 @@ def test_safe_norm_has_finite_gradient_at_zero():
 
 
 OWN = dataclasses.replace(CFG, model=ModelConfig(color_features="own"))
+BOTH = dataclasses.replace(CFG, model=ModelConfig(color_features="both"))
 
 
-def test_own_colour_features_replace_f_and_leave_the_shared_init_alone():
+@pytest.mark.parametrize("cfg,with_f", [(OWN, False), (BOTH, True)])
+def test_own_colour_features_leave_the_shared_init_alone(cfg, with_f):
   shared = fields.init_params(jax.random.PRNGKey(3), CFG)
-  own = fields.init_params(jax.random.PRNGKey(3), OWN)
+  own = fields.init_params(jax.random.PRNGKey(3), cfg)
   assert "color_tables" not in shared and set(own) == set(shared) | {"color_tables"}
   # The geometry draws the same values either way; the colour's table is its own.
   chex.assert_trees_all_equal(own["tables"], shared["tables"])
   chex.assert_trees_all_equal(own["sdf"], shared["sdf"])
   chex.assert_equal_shape([own["color_tables"], own["tables"]])
   assert not np.array_equal(np.asarray(own["color_tables"]), np.asarray(own["tables"]))
-  n_enc = CFG.hash.n_levels * CFG.hash.n_features
-  chex.assert_shape(own["color"]["Dense_0"]["kernel"], (3 + 3 + n_enc, CFG.model.color_hidden))
+  n_in = 3 + 3 + CFG.hash.n_levels * CFG.hash.n_features + with_f * CFG.model.feature_dim
+  chex.assert_shape(own["color"]["Dense_0"]["kernel"], (n_in, CFG.model.color_hidden))
 
 
 def _colour_sum(cfg, params, x, n, v):
@@ -138,7 +140,7 @@ def _colour_sum(cfg, params, x, n, v):
   return jnp.sum(c_global + c_res)
 
 
-@pytest.mark.parametrize("cfg,reaches_geometry", [(CFG, True), (OWN, False)])
+@pytest.mark.parametrize("cfg,reaches_geometry", [(CFG, True), (OWN, False), (BOTH, True)])
 def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reaches_geometry):
   p = fields.init_params(jax.random.PRNGKey(4), cfg)
   k1, k2 = jax.random.split(jax.random.PRNGKey(5))
@@ -155,29 +157,31 @@ def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reach
     assert geometry_grad > 1e-4
   else:
     assert geometry_grad == 0.0
+  if "color_tables" in g:
     assert float(jnp.abs(g["color_tables"]).max()) > 1e-4
 
 
-def test_own_colour_features_are_the_hash_encoding_of_x():
-  # G's input is [x, n, hash(x)] with the colour's table: a float64 forward of G written here
-  # (ReLU MLP, sigmoid) on the encoding of x agrees with fields.colors.
-  p = fields.init_params(jax.random.PRNGKey(7), OWN)
+@pytest.mark.parametrize("cfg", [OWN, BOTH])
+def test_own_colour_features_are_the_hash_encoding_of_x(cfg):
+  # G's input is [x, n, (f,) hash(x)] with the colour's table: a float64 forward of G written here
+  # (ReLU MLP, sigmoid) on the encoding of x agrees with fields.colors; "own" ignores f.
+  p = fields.init_params(jax.random.PRNGKey(7), cfg)
   p["color_tables"] = jax.random.uniform(jax.random.PRNGKey(8), p["tables"].shape,
                                          minval=-0.5, maxval=0.5)
   rng = np.random.default_rng(9)
   x = jnp.asarray(rng.uniform(-0.8, 0.8, (40, 3)), jnp.float32)
   n = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
   v = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
-  f_unused = jnp.full((40, CFG.model.feature_dim), 7.0, jnp.float32)
-  c_global, _ = fields.colors(p, x, n, f_unused, v, OWN)
-  h = np.concatenate([np.asarray(x, np.float64), np.asarray(n, np.float64),
-                      np.asarray(encoding.encode(p["color_tables"], x, OWN.hash), np.float64)], -1)
+  f = jnp.asarray(rng.normal(size=(40, CFG.model.feature_dim)), jnp.float32)
+  c_global, _ = fields.colors(p, x, n, f, v, cfg)
+  parts = [x, n] + [f] * (cfg is BOTH) + [encoding.encode(p["color_tables"], x, cfg.hash)]
+  h = np.concatenate([np.asarray(a, np.float64) for a in parts], -1)
   layers = p["color"]
-  for i in range(OWN.model.color_layers):
+  for i in range(cfg.model.color_layers):
     h = np.maximum(h @ np.asarray(layers[f"Dense_{i}"]["kernel"], np.float64) +
                    np.asarray(layers[f"Dense_{i}"]["bias"], np.float64), 0.0)
-  out = h @ np.asarray(layers[f"Dense_{OWN.model.color_layers}"]["kernel"], np.float64) + \
-      np.asarray(layers[f"Dense_{OWN.model.color_layers}"]["bias"], np.float64)
+  out = h @ np.asarray(layers[f"Dense_{cfg.model.color_layers}"]["kernel"], np.float64) + \
+      np.asarray(layers[f"Dense_{cfg.model.color_layers}"]["bias"], np.float64)
   np.testing.assert_allclose(np.asarray(c_global), 1.0 / (1.0 + np.exp(-out)), atol=1e-5)
 
 

@@ -175,7 +175,7 @@ def test_wli_surface_term_is_the_sdf_squared_at_the_measured_points(cap, extra):
                              + 10.0 * float(logs["loss/wli_surface"]), rtol=1e-5)
 
 
-@pytest.mark.parametrize("color_features", ["shared", "own"])
+@pytest.mark.parametrize("color_features", ["shared", "own", "both"])
 def test_step_shapes_and_loss_decrease(cap, color_features):
   scene, _, norm = cap
   cfg = resolve("cpu", **SMALL, model={"color_features": color_features})
