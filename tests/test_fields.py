@@ -94,13 +94,20 @@ def test_spherical_harmonics_are_orthonormal():
   np.testing.assert_allclose(gram, np.eye(16), atol=2e-3)
 
 
+def _colour_inputs(seed: int, count: int, half_width: float):
+  """Random colour-network inputs: points x in [-half_width, half_width]^3, unit normals n and view
+  directions v, and features f, each [count, k] float32."""
+  rng = np.random.default_rng(seed)
+  x = jnp.asarray(rng.uniform(-half_width, half_width, (count, 3)), jnp.float32)
+  n = fields.unit(jnp.asarray(rng.normal(size=(count, 3)), jnp.float32))
+  v = fields.unit(jnp.asarray(rng.normal(size=(count, 3)), jnp.float32))
+  f = jnp.asarray(rng.normal(size=(count, CFG.model.feature_dim)), jnp.float32)
+  return x, n, v, f
+
+
 def test_colour_ranges_and_residual_switch():
   p = _params_with_live_encoding()
-  rng = np.random.default_rng(2)
-  x = jnp.asarray(rng.uniform(-1, 1, (100, 3)), jnp.float32)
-  n = fields.unit(jnp.asarray(rng.normal(size=(100, 3)), jnp.float32))
-  v = fields.unit(jnp.asarray(rng.normal(size=(100, 3)), jnp.float32))
-  f = jnp.asarray(rng.normal(size=(100, CFG.model.feature_dim)), jnp.float32)
+  x, n, v, f = _colour_inputs(2, 100, 1.0)
   c_global, c_res = fields.colors(p, x, n, f, v, CFG)
   assert float(c_global.min()) > 0 and float(c_global.max()) < 1
   assert float(c_res.min()) > -1 and float(c_res.max()) < 1 and float(jnp.abs(c_res).max()) > 0
@@ -147,10 +154,7 @@ def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reach
   p["tables"] = jax.random.uniform(k1, p["tables"].shape, minval=-0.5, maxval=0.5)
   if "color_tables" in p:
     p["color_tables"] = jax.random.uniform(k2, p["tables"].shape, minval=-0.5, maxval=0.5)
-  rng = np.random.default_rng(6)
-  x = jnp.asarray(rng.uniform(-0.8, 0.8, (50, 3)), jnp.float32)
-  n = fields.unit(jnp.asarray(rng.normal(size=(50, 3)), jnp.float32))
-  v = fields.unit(jnp.asarray(rng.normal(size=(50, 3)), jnp.float32))
+  x, n, v, _ = _colour_inputs(6, 50, 0.8)
   g = jax.grad(lambda q: _colour_sum(cfg, q, x, n, v))(p)
   geometry_grad = max(float(jnp.abs(a).max()) for a in jax.tree.leaves((g["sdf"], g["tables"])))
   if reaches_geometry:
@@ -168,11 +172,7 @@ def test_own_colour_features_are_the_hash_encoding_of_x(cfg):
   p = fields.init_params(jax.random.PRNGKey(7), cfg)
   p["color_tables"] = jax.random.uniform(jax.random.PRNGKey(8), p["tables"].shape,
                                          minval=-0.5, maxval=0.5)
-  rng = np.random.default_rng(9)
-  x = jnp.asarray(rng.uniform(-0.8, 0.8, (40, 3)), jnp.float32)
-  n = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
-  v = fields.unit(jnp.asarray(rng.normal(size=(40, 3)), jnp.float32))
-  f = jnp.asarray(rng.normal(size=(40, CFG.model.feature_dim)), jnp.float32)
+  x, n, v, f = _colour_inputs(9, 40, 0.8)
   c_global, _ = fields.colors(p, x, n, f, v, cfg)
   parts = [x, n] + [f] * (cfg is BOTH) + [encoding.encode(p["color_tables"], x, cfg.hash)]
   h = np.concatenate([np.asarray(a, np.float64) for a in parts], -1)
