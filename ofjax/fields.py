@@ -159,7 +159,7 @@ def init_params(key, cfg: Config, substrate=None) -> dict:
       # NeuS: inverse std s = exp(10 * variance).
       "variance": jnp.asarray(cfg.render.init_inv_s, jnp.float32),
   }
-  if mode != "shared":  # a key apart from the four above, so "shared" runs draw exactly what they always drew
+  if mode != "shared":  # a key apart from the four above: "shared" runs draw what they always drew
     params["color_tables"] = encoding.init_tables(jax.random.fold_in(key, 1), cfg.hash)
   return params
 
