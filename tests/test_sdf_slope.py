@@ -1,4 +1,4 @@
-"""experiments/sdf_slope.py: the SDF and its slope at the truth against a plane known in closed form."""
+"""experiments/sdf_slope.py: the SDF and its slope at the truth against a plane in closed form."""
 
 import json
 import sys
