@@ -22,9 +22,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
-from ofjax import export, fields
+from ofjax import export, fields, metrics
+from ofjax.meshquery import load_mesh
 
 # A slope below this is zero: with every hidden unit off the network's input gradient is exactly
 # 0; a live unit's contribution is orders of magnitude above it.
@@ -36,8 +36,8 @@ def slope_stats(run_dir: Path, scene_dir: Path, n_points: int = 100_000) -> dict
   the run's observed box: {"points", "sdf_median_um", "sdf_abs_mean_um", "slope_p10",
   "slope_median", "slope_p90", "flat_share"}."""
   run = export.load_run(Path(run_dir))
-  mesh = trimesh.load(Path(scene_dir) / "ground_truth" / "mesh.ply", force="mesh")
-  pts, _ = trimesh.sample.sample_surface(mesh, n_points, seed=0)
+  pts, _ = metrics.sample_surface(load_mesh(Path(scene_dir) / "ground_truth" / "mesh.ply"),
+                                  n_points, seed=0)
   x = run.norm.to_norm(pts)
   lo, hi = np.asarray(run.box[0]), np.asarray(run.box[1])
   x = x[np.all((x > lo) & (x < hi), axis=1)]
