@@ -15,11 +15,15 @@ from ofjax.config import Config, HashConfig, ModelConfig
 CFG = Config(hash=HashConfig(n_levels=6, log2_table_size=12, base_resolution=4))
 
 
-def _params_with_live_encoding(seed=0):
-  """Params whose hash tables and encoding weights are non-trivial (the init zeroes them)."""
-  p = fields.init_params(jax.random.PRNGKey(seed), CFG)
+def _params_with_live_encoding(seed=0, cfg=CFG):
+  """Params whose hash tables (the colour's too, when cfg has one) and encoding weights are
+  non-trivial (the init zeroes them)."""
+  p = fields.init_params(jax.random.PRNGKey(seed), cfg)
   k1, k2 = jax.random.split(jax.random.PRNGKey(seed + 1))
   p["tables"] = jax.random.uniform(k1, p["tables"].shape, minval=-0.5, maxval=0.5)
+  if "color_tables" in p:
+    p["color_tables"] = jax.random.uniform(jax.random.fold_in(k1, 1), p["tables"].shape,
+                                           minval=-0.5, maxval=0.5)
   k = p["sdf"]["Dense_0"]["kernel"]
   p["sdf"]["Dense_0"]["kernel"] = k + 0.3 * jax.random.normal(k2, k.shape)
   return p
@@ -149,11 +153,7 @@ def _colour_sum(cfg, params, x, n, v):
 
 @pytest.mark.parametrize("cfg,reaches_geometry", [(CFG, True), (OWN, False), (BOTH, True)])
 def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reaches_geometry):
-  p = fields.init_params(jax.random.PRNGKey(4), cfg)
-  k1, k2 = jax.random.split(jax.random.PRNGKey(5))
-  p["tables"] = jax.random.uniform(k1, p["tables"].shape, minval=-0.5, maxval=0.5)
-  if "color_tables" in p:
-    p["color_tables"] = jax.random.uniform(k2, p["tables"].shape, minval=-0.5, maxval=0.5)
+  p = _params_with_live_encoding(4, cfg)
   x, n, v, _ = _colour_inputs(6, 50, 0.8)
   g = jax.grad(lambda q: _colour_sum(cfg, q, x, n, v))(p)
   geometry_grad = max(float(jnp.abs(a).max()) for a in jax.tree.leaves((g["sdf"], g["tables"])))
@@ -169,9 +169,7 @@ def test_colour_gradient_reaches_the_geometry_only_through_a_shared_f(cfg, reach
 def test_own_colour_features_are_the_hash_encoding_of_x(cfg):
   # G's input is [x, n, (f,) hash(x)] with the colour's table: a float64 forward of G written here
   # (ReLU MLP, sigmoid) on the encoding of x agrees with fields.colors; "own" ignores f.
-  p = fields.init_params(jax.random.PRNGKey(7), cfg)
-  p["color_tables"] = jax.random.uniform(jax.random.PRNGKey(8), p["tables"].shape,
-                                         minval=-0.5, maxval=0.5)
+  p = _params_with_live_encoding(7, cfg)
   x, n, v, f = _colour_inputs(9, 40, 0.8)
   c_global, _ = fields.colors(p, x, n, f, v, cfg)
   parts = [x, n] + [f] * (cfg is BOTH) + [encoding.encode(p["color_tables"], x, cfg.hash)]
