@@ -17,8 +17,10 @@ Stages run as subprocesses of the ofjax CLIs, jobs through `experiments/sweep.py
 --workers, or Ray with --ray ADDRESS). Everything large goes under --work (default runs/ablation/):
 data_<resolution>/ holds the scenes and their association, steps<N>_<resolution>_cpu-<hash>/ the
 run directories with meshes and heat maps, one record JSON per job, so an interrupted run resumes;
-<hash> is a fingerprint of the cpu preset, so runs trained with another preset are retrained, not
-reused. The summary goes to --out (default experiments/results/):
+<hash> is a fingerprint of the preset the neural runs train with (--preset, default the cpu preset;
+a variant such as cpu+model.color_features=own measures a candidate preset before it is adopted),
+so runs trained with another preset are retrained, not reused, and a candidate's runs are kept
+when it becomes the preset (the directory is named by the preset name and the fingerprint). The summary goes to --out (default experiments/results/):
 ablation.json (every record, the machine, the commit, the budget), ablation.md (the tables laid
 out like the paper's, ratios beside the paper's, the issue's targets, wall times) and
 figures/<poses>_<scene>.png (per method: top-view render, completeness and accuracy heat maps, one
@@ -144,7 +146,7 @@ def run_method(job: sweep.Job) -> dict:
     try:
       _, stages["train"] = run_cli("train", "--data", p["scene_dir"], "--out", str(run_dir), "--poses",
                                 p["poses"], "--seed", str(job.seed), "--overwrite", "--quiet",
-                                *steps, *TRAIN_FLAGS[job.variant])
+                                *steps, *preset_flags(p["preset"]), *TRAIN_FLAGS[job.variant])
     except NoSurface as e:
       return {"eval": None, "no_surface": str(e)[-sweep.STDOUT_TAIL_CHARS:],
               "stages_s": {"train": time.time() - t0}, "run_dir": str(run_dir), "git": git}
@@ -167,17 +169,24 @@ def _evaluated(job: sweep.Job, stages: dict, git: dict) -> dict:
   m = load_mesh(mesh)
   plots.mesh_preview(run_dir / "preview.png", np.asarray(m.vertices), np.asarray(m.faces),
                      vertex_rgb(m), f"{job.scene}: {LABELS[job.variant]}")
-  extracted = {} if job.variant == "conventional" else {"export_refine_steps": export.REFINE_STEPS,
-                                                         "export_grid": mesh_grid()}
+  extracted = {} if job.variant == "conventional" else {
+      "export_refine_steps": export.REFINE_STEPS, "export_grid": mesh_grid(p["preset"])}
   return {"eval": json.loads(out.strip().splitlines()[-1]), "stages_s": stages,
           "run_dir": str(run_dir), "git": git, "eval_args": eval_args(job),
           "hidden_dropped": True, **extracted}
 
 
-def mesh_grid() -> dict:
-  """The marching-cubes grid the cpu preset exports at (train.mesh_resolution; 0: cells of
+def preset_flags(preset: str) -> list[str]:
+  """ofjax.train's options for a preset variant 'cpu+component.field=value+...' (parse_spec's
+  form); they come before a method's own flags (TRAIN_FLAGS), which win over them."""
+  name, *sets = preset.split("+")
+  return ["--preset", name] + [arg for item in sets for arg in ("--set", item)]
+
+
+def mesh_grid(preset: str = "cpu") -> dict:
+  """The marching-cubes grid `preset` exports at (train.mesh_resolution; 0: cells of
   AUTO_CELL_PX WLI pixel)."""
-  return {"mesh_resolution": config.resolve("cpu").train.mesh_resolution,
+  return {"mesh_resolution": config.resolve_spec(preset).train.mesh_resolution,
           "auto_cell_px": export.AUTO_CELL_PX}
 
 
@@ -201,9 +210,10 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
       continue
     job = by_result[r["job"]["result"]]
     neural = job.variant != "conventional"
+    grid = mesh_grid(job.params["preset"])
     stale_mesh = (not res.get("hidden_dropped")
                   or neural and (res.get("export_refine_steps", 0) != export.REFINE_STEPS
-                                 or res.get("export_grid", OLD_GRID) != mesh_grid()))
+                                 or res.get("export_grid", OLD_GRID) != grid))
     if (res.get("eval_args", []) == eval_args(job) and not stale_mesh
         and "wli_blind_share" in res["eval"]):
       continue
@@ -212,7 +222,6 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
               if k != "eval" and (k != "export" or not stale_mesh)}
     made = remade_at(res)
     if stale_mesh and neural:
-      grid = mesh_grid()
       log(f"ablation: exporting {r['name']} again ({export.REFINE_STEPS} refinement steps, "
           f"grid {grid}, hidden faces dropped)")
       _, stages["export"] = run_cli("export", res["run_dir"], "--resolution",
@@ -233,9 +242,9 @@ def reevaluate(records: list[dict], jobs: list[sweep.Job], log) -> list[dict]:
   return records
 
 
-def preset_fingerprint() -> str:
-  """The cpu preset's Config.fingerprint(): what every neural run trains with."""
-  return config.resolve("cpu").fingerprint()
+def preset_fingerprint(preset: str = "cpu") -> str:
+  """Config.fingerprint() of `preset` (a preset or variant): what every neural run trains with."""
+  return config.resolve_spec(preset).fingerprint()
 
 
 def git_state() -> dict:
@@ -684,8 +693,8 @@ def report(settings: dict, records: list[dict], summary: dict, figures: dict) ->
               f" The checkout changed during the run (at the end: `{settings['git_at_end']['commit']}`"
               f", uncommitted {settings['git_at_end']['uncommitted_code']}); stages that started "
               "later ran the later code.") + "", "", commits_line(records), "",
-           f"Budget: training steps {settings['steps'] or 'the cpu preset default'}, synth "
-           f"resolution `{settings['resolution']}`, cpu preset "
+           f"Budget: training steps {settings['steps'] or 'the preset default'}, synth "
+           f"resolution `{settings['resolution']}`, preset `{settings['preset']}` "
            f"(fingerprint `{settings.get('preset_fingerprint', '-')}`)"
            + ("" if settings["full_budget"] else " - **REDUCED BUDGET: not the issue's full run**")
            + ".", "",
@@ -774,7 +783,9 @@ def main(argv=None) -> int:
   p.add_argument("--poses", default=",".join(POSE_SOURCES),
                  help="associate (ofjax.associate), true (ground truth), or both (default)")
   p.add_argument("--true-poses", action="store_true", help="same as --poses true")
-  p.add_argument("--steps", type=int, help="training steps (default: the cpu preset's)")
+  p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
+  p.add_argument("--preset", default="cpu", help="the neural runs' preset, or a variant of it "
+                 "such as cpu+model.color_features=own (default cpu)")
   p.add_argument("--resolution", default="quick", choices=("tiny", "quick", "full"),
                  help="synth resolution (default quick)")
   p.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
@@ -796,8 +807,12 @@ def main(argv=None) -> int:
   # and again after the last, and the report says when they differ.
   git_start = git_state()
   data_work = args.work / f"data_{args.resolution}"
-  fingerprint = preset_fingerprint()
-  work = args.work / f"steps{args.steps or 'preset'}_{args.resolution}_cpu-{fingerprint}"
+  try:
+    fingerprint = preset_fingerprint(args.preset)
+  except ValueError as e:
+    raise UserError(f"--preset {e}") from None
+  preset_name = args.preset.split("+")[0]
+  work = args.work / f"steps{args.steps or 'preset'}_{args.resolution}_{preset_name}-{fingerprint}"
   log = lambda m: print(m, flush=True)  # noqa: E731
   t0 = time.time()
   # A scene synthesised for true poses only is not a finished data job of an associated table.
@@ -821,7 +836,7 @@ def main(argv=None) -> int:
                                 result=str(work / "records" / f"{name}.json"),
                                 params={"poses_source": ps, "scene_dir": str(scene_dir),
                                         "poses": str(pose_file), "run_dir": str(work / "runs" / name),
-                                        "steps": args.steps}))
+                                        "steps": args.steps, "preset": args.preset}))
   records = reevaluate(sweep.run_jobs(jobs, run_method, workers=args.workers,
                                      ray_address=args.ray, log=log), jobs, log)
 
@@ -837,7 +852,7 @@ def main(argv=None) -> int:
         figures[(ps, s)] = str(path.relative_to(args.out))
   settings = {"argv": argv, "scenes": scenes, "variants": variants, "seeds": seeds,
               "true_seeds": seeds_of["true"], "poses": poses,
-              "steps": args.steps, "resolution": args.resolution, "preset": "cpu",
+              "steps": args.steps, "resolution": args.resolution, "preset": args.preset,
               "preset_fingerprint": fingerprint,
               "full_budget": args.steps is None and args.resolution == "quick"
               and scenes == list(SCENES) and variants == list(VARIANTS) and poses == list(POSE_SOURCES),

@@ -19,7 +19,7 @@ def _job(tmp_path: Path, source: str, variant: str = "fused") -> sweep.Job:
   return sweep.Job(scene="seed", variant=variant, seed=0, result=str(tmp_path / f"{name}.json"),
                    params={"poses_source": source, "scene_dir": str(tmp_path / "scene"),
                            "poses": str(tmp_path / f"{source}.json"),
-                           "run_dir": str(tmp_path / name), "steps": 600})
+                           "run_dir": str(tmp_path / name), "steps": 600, "preset": "cpu"})
 
 
 def _finished(job: sweep.Job, **result) -> dict:
@@ -296,3 +296,35 @@ def test_figure_draws_the_cross_sections_against_the_truth(tmp_path):
   elsewhere = _job(tmp_path / "scene", "true", "fused")  # its scene_dir holds no truth
   Path(elsewhere.params["run_dir"]).mkdir()
   assert len(ablation.figure(tmp_path / "without.png", "seed", [_finished(elsewhere)]).axes) == 3
+
+
+def test_preset_variant_reaches_the_training_and_names_its_fingerprint():
+  """--preset's variant becomes ofjax.train options that resolve to the config the work directory
+  is named by; a method's own flags come after it and win (OM only's colour weight), and the
+  default is the cpu preset itself."""
+  from ofjax import config, train
+  variant = "cpu+model.color_features=own+loss.lambda_color=0.3"
+
+  def trained(preset, method):
+    flags = [*ablation.preset_flags(preset), *ablation.TRAIN_FLAGS[method]]
+    args = train.build_parser().parse_args(["--data", "d", "--out", "o", "--seed", "0", *flags])
+    return train.config_from_args(args)
+
+  assert ablation.preset_flags("cpu") == ["--preset", "cpu"]
+  fused = trained(variant, "fused")
+  assert fused.model.color_features == "own" and fused.loss.lambda_color == 0.3
+  assert fused.fingerprint() == ablation.preset_fingerprint(variant) != ablation.preset_fingerprint()
+  om = trained(variant, "om")
+  assert om.loss.lambda_color == 1.0 and om.model.init_shape == "plane"
+  assert om.model.color_features == "own"
+  assert trained("cpu", "fused").fingerprint() == config.resolve("cpu").fingerprint()
+  assert ablation.mesh_grid(variant) == ablation.mesh_grid()
+
+
+def test_unknown_preset_field_is_a_user_error(tmp_path, capsys):
+  """A --preset naming a field the config lacks exits 2 with one line, before any job runs."""
+  code = ablation.main(["--preset", "cpu+model.no_such_field=1", "--work", str(tmp_path / "w"),
+                        "--out", str(tmp_path / "out")])
+  err = capsys.readouterr().err.strip()
+  assert code == 2 and err.startswith("ofjax: error: --preset") and "no_such_field" in err
+  assert len(err.splitlines()) == 1 and not (tmp_path / "w").exists()
