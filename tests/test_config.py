@@ -62,12 +62,16 @@ def test_fingerprint_follows_the_resolved_values_not_the_spelling():
                        ("max_skipped_in_a_row", 3)):
     assert config.resolve("cpu", train={field: value}).fingerprint() == cpu.fingerprint(), field
   assert config.resolve("cpu", train={"n_rays": 256}).fingerprint() != cpu.fingerprint()
-  # A field added after runs were recorded counts only away from its default.
+  # A field added after runs were recorded counts only away from its default (the paper preset's
+  # value), and then each of its values is its own training.
+  paper = config.resolve("paper")
   for part, names in config.ADDED_FIELDS.items():
     for name in names:
       default = getattr(getattr(config.Config(), part), name)
-      assert config.resolve("cpu", **{part: {name: default}}).fingerprint() == cpu.fingerprint()
-  assert config.resolve("cpu", model={"color_features": "own"}).fingerprint() != cpu.fingerprint()
+      assert config.resolve("paper", **{part: {name: default}}).fingerprint() == paper.fingerprint()
+  features = {config.resolve("cpu", model={"color_features": f}).fingerprint()
+              for f in config.COLOR_FEATURES}
+  assert len(features) == len(config.COLOR_FEATURES) and cpu.fingerprint() in features
 
 
 def test_with_steps_shortens_the_schedule_with_the_run():
