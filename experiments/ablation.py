@@ -22,7 +22,8 @@ a variant such as cpu+model.color_features=own measures a candidate preset befor
 so runs trained with another preset are retrained, not reused, and a candidate's runs are kept
 when it becomes the preset (the directory is named by the preset name and the fingerprint). The
 summary goes to --out (default experiments/results/): ablation.json (every record, the machine,
-the commit, the budget), ablation.md (the tables laid out like the paper's, ratios beside the paper's, the issue's targets, wall times) and
+the commit, the budget), ablation.md (the tables laid out like the paper's, ratios beside the
+paper's, the issue's targets, wall times) and
 figures/<poses>_<scene>.png (per method: top-view render, completeness and accuracy heat maps, one
 colour scale per scene; every method's cross-section through the middle of the scene against the
 truth's, whole and zoomed where the fused mesh is farthest from it).
