@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 import time
@@ -29,7 +30,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ofjax import checkpoint, eval as eval_lib, export, fields, fileio, metrics, plots, train
+from ofjax import checkpoint, compile_cache, eval as eval_lib, export, fields, fileio, metrics, plots, train
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 from ofjax.scene import load_poses
@@ -154,6 +155,9 @@ def main(argv=None) -> int:
   p.add_argument("--set", dest="sets", action="append", default=[], metavar="COMPONENT.FIELD=VALUE",
                  help="override a field of the cpu preset, as the train CLI's --set (repeatable)")
   args = p.parse_args(argv)
+  # Cold compiles, as a first run of the demo has them: the export (in process) and the tools run
+  # as subprocesses would otherwise load what an earlier run compiled. An explicit setting wins.
+  os.environ.setdefault(compile_cache.ENV, "off")
   if args.points < 1:
     raise UserError(f"--points {args.points}: must be positive")
   if (args.work / "scene").exists() or (args.work / "run").exists():

@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 from skimage import measure
 
-from ofjax import checkpoint, fields, visibility
+from ofjax import checkpoint, compile_cache, fields, visibility
 from ofjax import scene as scene_lib
 from ofjax.config import Config
 from ofjax.errors import UserError, cli
@@ -418,6 +418,7 @@ def main(argv=None) -> int:
                      help="keep the faces no camera sees (pockets inside solid parts)")
   args = p.parse_args(argv)
   run_dir = Path(args.run_dir)
+  compile_cache.enable()
   if args.resolution is not None and (args.resolution < 0 or 0 < args.resolution < 8):
     raise UserError(f"--resolution {args.resolution}: use at least 8 cells, or 0 for cells of "
                     f"{AUTO_CELL_PX} WLI pixel")

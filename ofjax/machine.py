@@ -63,10 +63,15 @@ def cpu_id() -> str | None:
   return None
 
 
+def cpu_flags() -> list[str]:
+  """Every feature flag of the CPU, sorted (Linux; empty elsewhere)."""
+  info = _cpuinfo()
+  return sorted(set((info.get("flags") or info.get("Features") or "").split()))
+
+
 def simd() -> list[str]:
   """Which of SIMD_FLAGS the CPU has (Linux; empty elsewhere)."""
-  info = _cpuinfo()
-  flags = set((info.get("flags") or info.get("Features") or "").split())
+  flags = set(cpu_flags())
   return [f for f in SIMD_FLAGS if f in flags]
 
 

@@ -32,8 +32,8 @@ import numpy as np
 import optax
 
 from ofjax import __version__ as ofjax_version
-from ofjax import (averaging, cameras, checkpoint, fields, fileio, guard, losses, machine, parallel,
-                   prefit, render)
+from ofjax import (averaging, cameras, checkpoint, compile_cache, fields, fileio, guard, losses,
+                   machine, parallel, prefit, render)
 from ofjax import scene as scene_lib
 from ofjax.config import KEEPING_FIELDS, PRESETS, Config, resolve_spec, with_steps
 from ofjax.errors import UserError, cli
@@ -522,6 +522,7 @@ def load_scene_for_training(args) -> scene_lib.Scene:
 @cli
 def main(argv=None) -> int:
   args = build_parser().parse_args(argv)
+  compile_cache.enable()
   cfg = config_from_args(args)
   run_dir = Path(args.out)
   check_run_dir(run_dir, args.resume, args.overwrite)
