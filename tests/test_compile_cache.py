@@ -18,6 +18,7 @@ import json, sys
 import jax, jax.numpy as jnp, numpy as np
 from ofjax import compile_cache, config, fields
 path = compile_cache.enable()
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # keep these small programs
 events = {"hits": 0, "misses": 0}
 def count(name, **kwargs):
   for kind in events:
