@@ -30,7 +30,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ofjax import checkpoint, compile_cache, eval as eval_lib, export, fields, fileio, metrics, plots, train
+from ofjax import (checkpoint, compile_cache, eval as eval_lib, export, fields, fileio, metrics,
+                   plots, train)
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 from ofjax.scene import load_poses

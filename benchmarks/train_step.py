@@ -10,7 +10,7 @@ gradient again). Each step is compiled ahead of time (compile_s), run once to wa
 Columns: samples/step = rays x (n_samples + wli_guided_samples + n_importance), the points the
 differentiable fields are evaluated at (the upsampling rounds' SDF-only queries come on top, as
 in NeuS); samples/s and it/s from wall time; peak_mem_mb is what the compiled real step holds
-while it runs, from XLA's buffer assignment (`peak_mem_mb`), the same on CPU and GPU. A
+while it runs, from XLA's buffer assignment (see `peak_mem_mb()`), the same on CPU and GPU. A
 process-wide peak (RSS, or a device's peak_bytes_in_use) never falls, so it would give every
 preset after the largest one 0.
 
