@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ofjax import compile_cache, fileio, machine, metrology, plots
+from ofjax import fileio, machine, metrology, plots
 from ofjax.errors import UserError, cli
 from ofjax.meshquery import load_mesh
 
@@ -67,7 +67,6 @@ def main(argv=None) -> int:
   p.add_argument("--steps", type=int, help="training steps (default: the cpu preset's)")
   p.add_argument("--seed", type=int, default=0)
   args = p.parse_args(argv)
-  compile_cache.enable()
 
   from ofjax import eval as eval_cli, measure, synth, train
   from ofjax.associate import __main__ as associate_cli
