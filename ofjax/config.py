@@ -68,8 +68,7 @@ class ModelConfig:
   # rendering weights (PermutoSDF's separate colour lattice; not in the paper); "both" is f and
   # that encoding side by side. "own" at the cpu preset's colour weight: 0.75x / 0.94x the
   # Chamfer on `lenses` / `wing` at 3,600 steps, 0.97x over the five scenes at 600; at colour
-  # weight 1 it lets `wing`'s SDF network die (experiments/README.md). Not yet the cpu preset's:
-  # that needs the committed ablation trained again.
+  # weight 1 it lets `wing`'s SDF network die (experiments/README.md). The cpu preset uses "own".
   color_features: str = "shared"
 
   def __post_init__(self):
@@ -253,9 +252,13 @@ PRESETS: dict[str, Config] = {
     # poses; 0.472 -> 0.400 um, every scene but `seed` lower, that one level), confirmed on new
     # instances (synth seed 1) of circuit, wing, sensor, at -0.4 dB of albedo on average (-1.9 on
     # one); 0.03 gained nothing more (experiments/README.md). OM only keeps 1 (ablation.py).
+    # The colour MLPs see a hash encoding of their own instead of the SDF network's feature
+    # (model.color_features "own"): 0.75x / 0.94x the fused Chamfer on `lenses` / `wing` at 3,600
+    # steps, 0.97x over the five scenes at 600 (true poses), the albedo higher on four scenes by
+    # 0.6-2.4 dB, at 0.76-0.94x the samples per second (experiments/README.md).
     "cpu": Config(
         hash=HashConfig(n_levels=12, log2_table_size=16, gather_groups=4),
-        model=ModelConfig(init_shape="wli"),
+        model=ModelConfig(init_shape="wli", color_features="own"),
         loss=LossConfig(lambda_color=0.1, lambda_residual=0.01, lambda_wli_surface=30.0),
         render=RenderConfig(n_samples=32, n_importance=32, n_importance_steps=2,
                             cos_anneal_steps=1000, wli_guided_samples=8),
