@@ -18,7 +18,7 @@ Stages run as subprocesses of the ofjax CLIs, jobs through `experiments/sweep.py
 data_<resolution>/ holds the scenes and their association, steps<N>_<resolution>_cpu-<hash>/ the
 run directories with meshes and heat maps, one record JSON per job, so an interrupted run resumes;
 <hash> is a fingerprint of the preset the neural runs train with (--preset, default the cpu preset;
-a variant such as cpu+model.color_features=own measures a candidate preset before it is adopted),
+a variant such as cpu+loss.lambda_color=0.3 measures a candidate preset before it is adopted),
 so runs trained with another preset are retrained, not reused, and a candidate's runs are kept
 when it becomes the preset (the directory is named by the preset name and the fingerprint). The
 summary goes to --out (default experiments/results/): ablation.json (every record, the machine,
@@ -488,7 +488,8 @@ def differences(rows: dict, scenes: list[str], steps) -> list[str]:
     out.append(f"- WLI only beats fused on {', '.join(wli_better)} (paper: fused 15.8x better on "
                "average): with the same rays per step the fused model fits the heights from half "
                "as many WLI rays (the other half are OM rays); at equal WLI rays per step it is at "
-               "or below WLI only on four of the five scenes and on average (1,200 steps, "
+               "or below WLI only on four of the five scenes and on average (1,200 steps, with the "
+               "SDF network's feature shared, before the colour's own table; "
                "experiments/README.md, 'Fused against WLI only at equal WLI rays per step').")
   same_geo = [s for s in scenes if None not in (val(s, "fused_nores"), val(s, "fused"))
               and abs(val(s, "fused_nores") / val(s, "fused") - 1) <= WITHIN]
@@ -786,7 +787,7 @@ def main(argv=None) -> int:
   p.add_argument("--true-poses", action="store_true", help="same as --poses true")
   p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
   p.add_argument("--preset", default="cpu", help="the neural runs' preset, or a variant of it "
-                 "such as cpu+model.color_features=own (default cpu)")
+                 "such as cpu+loss.lambda_color=0.3 (default cpu)")
   p.add_argument("--resolution", default="quick", choices=("tiny", "quick", "full"),
                  help="synth resolution (default quick)")
   p.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
