@@ -66,9 +66,8 @@ class ModelConfig:
   # hash table through f; "own" is a hash encoding of their own (the same HashConfig, a separate
   # table) in place of f, so the photos move the geometry only through the normal and the
   # rendering weights (PermutoSDF's separate colour lattice; not in the paper); "both" is f and
-  # that encoding side by side. "own" at the cpu preset's colour weight: 0.75x / 0.94x the
-  # Chamfer on `lenses` / `wing` at 3,600 steps, 0.97x over the five scenes at 600; at colour
-  # weight 1 it lets `wing`'s SDF network die (experiments/README.md). The cpu preset uses "own".
+  # that encoding side by side. The cpu preset uses "own" (its comment has the figures); at
+  # colour weight 1 it lets `wing`'s SDF network die (experiments/README.md).
   color_features: str = "shared"
 
   def __post_init__(self):
